@@ -1,0 +1,7 @@
+"""Errors raised while building, simplifying or compiling a model."""
+
+from __future__ import annotations
+
+
+class ModelError(ValueError):
+    """A model is malformed or cannot be reduced to an explicit ODE; the message names the equations."""

@@ -1,0 +1,58 @@
+"""Load a user's model from a builder reference: ``package.module:function`` or ``path/file.py:function``."""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from physmend.modeling.errors import ModelError
+from physmend.modeling.model import Model
+
+
+def _import_builder(ref: str) -> Any:
+    if ":" not in ref:
+        raise ModelError(
+            f"model.builder must look like 'package.module:function' or 'path/to/file.py:function', "
+            f"but got {ref!r}"
+        )
+    where, func = ref.rsplit(":", 1)
+    if where.endswith(".py") or "/" in where or "\\" in where:
+        path = Path(where).expanduser().resolve()
+        if not path.is_file():
+            raise ModelError(f"model.builder: model file {str(path)!r} does not exist (from {ref!r})")
+        mod_name = f"physmend_user_model_{abs(hash(str(path)))}"
+        spec = importlib.util.spec_from_file_location(mod_name, path)
+        assert spec is not None and spec.loader is not None
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[mod_name] = module
+        try:
+            spec.loader.exec_module(module)
+        except Exception as exc:
+            raise ModelError(f"model.builder: importing {str(path)!r} failed: {exc!r}") from exc
+    else:
+        try:
+            module = importlib.import_module(where)
+        except ImportError as exc:
+            raise ModelError(f"model.builder: cannot import module {where!r} (from {ref!r}): {exc}") from exc
+    try:
+        return getattr(module, func)
+    except AttributeError:
+        raise ModelError(f"model.builder: {where!r} has no function {func!r}") from None
+
+
+def load_model(builder: str, options: Mapping[str, Any] | None = None) -> Model:
+    """Call the builder named by ``builder`` with keyword ``options`` and return its :class:`Model`."""
+    fn = _import_builder(builder)
+    try:
+        model = fn(**dict(options or {}))
+    except TypeError as exc:
+        raise ModelError(f"model.builder {builder!r} rejected model.options {dict(options or {})}: {exc}") from exc
+    if not isinstance(model, Model):
+        raise ModelError(
+            f"model.builder {builder!r} must return a physmend.modeling.Model, but returned {type(model).__name__}"
+        )
+    return model

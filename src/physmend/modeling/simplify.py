@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 import networkx as nx
 import sympy as sp
+from sympy.solvers.solveset import NonlinearError
 
 from physmend.modeling.errors import ModelError
 from physmend.modeling.model import Equation, Model, Variable, der_name
@@ -255,7 +256,7 @@ def _solve_block(
         return {u: sols[0]}
     try:
         a, b = sp.linear_eq_to_matrix(residuals, unknowns)
-    except sp.solvers.solveset.NonlinearError:
+    except NonlinearError:
         raise ModelError(
             f"model {model_name!r}: the algebraic loop in {names} is nonlinear; physmend solves "
             f"algebraic loops only when they are linear. Equations:\n  {listing}"

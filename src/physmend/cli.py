@@ -1,0 +1,109 @@
+"""The ``physmend`` command line. Thin: heavy libraries are imported inside the command that needs them."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+STAGES = {
+    "diagnose": ("physmend.stages.diagnose", "simulate the model as written against the telemetry: where does it miss?"),
+}
+
+EPILOG = """\
+Trailing key=value arguments are Hydra overrides of the composed configuration, e.g.
+  physmend diagnose data=my_plant model=my_plant simulate.rtol=1e-6
+Your own config groups (model/, data/ ...) go in a folder passed with --config-dir.
+Defaults: MLflow store sqlite:///mlflow.db in the working directory (browse with `physmend ui`).
+"""
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="physmend",
+        description="Find the physics your model is missing.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="store_true", help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_text) in STAGES.items():
+        p = sub.add_parser(name, help=help_text, description=help_text, epilog=EPILOG,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        _common(p)
+        if name != "diagnose":
+            p.add_argument("run_id", nargs="?", default=None, help="source run ID (default: the current selection)")
+    p = sub.add_parser("config", help="print the composed configuration", epilog=EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    _common(p)
+    p = sub.add_parser("ui", help="open the MLflow UI on the configured store")
+    _common(p)
+    p.add_argument("--port", type=int, default=5000)
+    p.add_argument("--host", default="127.0.0.1")
+    return parser
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config-dir", default=None, help="a folder with your own config groups (searched first)")
+    p.add_argument("overrides", nargs="*", help="Hydra overrides, key=value")
+
+
+def _compose(args: argparse.Namespace):  # noqa: ANN202
+    from physmend.config import compose
+
+    return compose(args.overrides, user_config_dir=args.config_dir)
+
+
+def _ui(args: argparse.Namespace) -> int:
+    import subprocess
+
+    from physmend.tracking.store import sqlite_path
+
+    cfg = _compose(args)
+    uri = str(cfg.tracking.uri)
+    db = sqlite_path(uri)
+    if db is not None:
+        uri = f"sqlite:///{db}"
+    cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", args.host,
+           "--port", str(args.port), "--workers", "1"]
+    print("running:", " ".join(cmd))
+    return subprocess.call(cmd)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if args.version:
+        from physmend import __version__
+
+        print(__version__)
+        return 0
+    if args.command is None:
+        parser.print_help()
+        return 0
+    bad = [o for o in args.overrides if "=" not in o]
+    if bad:
+        parser.error(f"overrides must look like key=value, but got {bad}")
+    from physmend.errors import USER_ERRORS
+
+    try:
+        if args.command == "ui":
+            return _ui(args)
+        cfg = _compose(args)
+        if args.command == "config":
+            from physmend.config import to_yaml
+
+            print(to_yaml(cfg))
+            return 0
+        import importlib
+
+        module = importlib.import_module(STAGES[args.command][0])
+        module.run(cfg, getattr(args, "run_id", None))
+        return 0
+    except USER_ERRORS as exc:
+        print(f"physmend {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,11 @@
+"""Errors that mean "your input is wrong" (reported as one message, no traceback) — and only those."""
+
+from __future__ import annotations
+
+from physmend.config import ConfigError
+from physmend.data import DataError
+from physmend.modeling.errors import ModelError
+from physmend.simulate.errors import SimulationError
+from physmend.tracking.store import TrackingError
+
+USER_ERRORS: tuple[type[Exception], ...] = (ConfigError, DataError, ModelError, SimulationError, TrackingError)

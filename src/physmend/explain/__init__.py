@@ -1,0 +1,1 @@
+"""Explanations: residual analysis, mechanism catalogue and reports."""

@@ -1,0 +1,91 @@
+"""Exogenous inputs as batched piecewise-linear functions of time."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+
+class PiecewiseLinear:
+    """Linear interpolation of ``values (B, K, n)`` on shared knots ``knots (K,)`` (seconds).
+
+    Outside the knots the end values are held. ``__call__(t)`` with a scalar ``t`` gives
+    ``(B, n)``; :meth:`at` with ``t (T,)`` gives ``(T, B, n)``.
+    """
+
+    def __init__(self, knots: torch.Tensor, values: torch.Tensor) -> None:
+        if knots.ndim != 1 or values.ndim != 3 or values.shape[1] != knots.shape[0]:
+            raise ValueError(
+                f"PiecewiseLinear needs knots (K,) and values (B, K, n), but got {tuple(knots.shape)} "
+                f"and {tuple(values.shape)}"
+            )
+        self.knots = knots
+        self.values = values
+        k = knots.shape[0]
+        if k > 1:
+            dt = (knots[1:] - knots[:-1]).clamp_min(1e-300)
+            self.slopes = (values[:, 1:] - values[:, :-1]) / dt[None, :, None]
+        else:
+            self.slopes = torch.zeros_like(values)
+
+    @property
+    def n_inputs(self) -> int:
+        return self.values.shape[-1]
+
+    def _index(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        k = self.knots.shape[0]
+        tc = t.clamp(self.knots[0], self.knots[-1])
+        idx = (torch.searchsorted(self.knots, tc.detach().reshape(-1), right=True) - 1).clamp(0, max(k - 2, 0))
+        return idx.reshape(t.shape), tc
+
+    def __call__(self, t: torch.Tensor | float) -> torch.Tensor:
+        t = torch.as_tensor(t, dtype=self.knots.dtype, device=self.knots.device)
+        if self.values.shape[-1] == 0:
+            return self.values[:, 0, :]
+        idx, tc = self._index(t)
+        base = self.values[:, idx]
+        if self.knots.shape[0] == 1:
+            return base
+        return base + self.slopes[:, idx] * (tc - self.knots[idx])
+
+    def at(self, t: torch.Tensor) -> torch.Tensor:
+        """Values at many times ``t (T,)``: ``(T, B, n)``."""
+        if self.values.shape[-1] == 0:
+            return self.values[:, :1, :].expand(-1, t.shape[0], -1).transpose(0, 1)
+        idx, tc = self._index(t)
+        base = self.values[:, idx]  # (B, T, n)
+        if self.knots.shape[0] > 1:
+            base = base + self.slopes[:, idx] * (tc - self.knots[idx])[None, :, None]
+        return base.transpose(0, 1)
+
+    def select(self, index: Sequence[int] | torch.Tensor) -> "PiecewiseLinear":
+        """The same inputs for a subset (or repetition) of batch elements."""
+        idx = torch.as_tensor(index, dtype=torch.long)
+        return PiecewiseLinear(self.knots, self.values[idx])
+
+
+def union_knots(series: Sequence[Sequence[np.ndarray]]) -> np.ndarray:
+    """Sorted union of all sample times (s) of all channels of all batch elements."""
+    times = [np.asarray(t, dtype=np.float64) for per in series for t in per]
+    return np.unique(np.concatenate(times)) if times else np.zeros(1)
+
+
+def from_channels(
+    channels: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]], dtype: torch.dtype = torch.float64
+) -> PiecewiseLinear:
+    """Build batched inputs from ``channels[b][i] = (time (n,), values (n,))`` of batch element b, input i.
+
+    The knots are the union of all sample times, so each channel's own linear interpolant is
+    reproduced exactly.
+    """
+    n_inputs = len(channels[0]) if channels else 0
+    if n_inputs == 0:
+        return PiecewiseLinear(torch.zeros(1, dtype=dtype), torch.zeros(len(channels), 1, 0, dtype=dtype))
+    knots = union_knots([[c[0] for c in per] for per in channels])
+    vals = np.empty((len(channels), knots.size, n_inputs))
+    for b, per in enumerate(channels):
+        for i, (t, v) in enumerate(per):
+            vals[b, :, i] = np.interp(knots, t, v)
+    return PiecewiseLinear(torch.as_tensor(knots, dtype=dtype), torch.as_tensor(vals, dtype=dtype))

@@ -97,6 +97,11 @@ def simulate_batch(
 ) -> Trajectories:
     """Simulate the model as written for every experiment of ``batch`` in one batched solve."""
     p = batch.params if params is None else params
+    options = dict(options or {})
+    knots = batch.inputs.knots
+    inner = knots[(knots > batch.t[0]) & (knots < batch.t[-1])]
+    if inner.numel():  # input kinks: step onto them rather than across them
+        options.setdefault("tstops" if method == "rosenbrock23" else "step_t", inner)
 
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return model.rhs(u, batch.inputs(t), p)

@@ -48,10 +48,13 @@ def odeint_rosenbrock(
     first_step: float | None = None,
     max_steps: int = 100_000,
     names: list[str] | None = None,
+    tstops: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Integrate ``du/dt = f(t, u)`` from ``u0 (B, n)`` and return ``u`` at times ``t (T,)``: ``(T, B, n)``.
 
-    ``t`` must be increasing; ``t[0]`` is the initial time. Raises :class:`SimulationError`
+    ``t`` must be increasing; ``t[0]`` is the initial time. ``tstops`` are times (s) where the
+    right-hand side has kinks (knots of piecewise-linear inputs): steps end on them instead of
+    straddling them, which avoids rejected steps. Raises :class:`SimulationError`
     naming the experiment (``names[b]``) and the time when integration fails.
     """
     if t.ndim != 1 or t.numel() < 1:
@@ -79,6 +82,9 @@ def odeint_rosenbrock(
     h = max(first_step, 10 * h_min)
     next_eval = 1
     steps = 0
+    stops = [] if tstops is None else sorted(float(x) for x in tstops.detach().flatten() if t0 < float(x) < t_final)
+    next_stop = 0
+    h_wanted = h
     while next_eval < t.numel():
         steps += 1
         if steps > max_steps:
@@ -87,6 +93,11 @@ def odeint_rosenbrock(
                 f"(experiments {names}); the model may be unstable or the tolerances too tight"
             )
         h = min(h, t_final - tc)
+        while next_stop < len(stops) and stops[next_stop] <= tc + 1e-9 * max(abs(tc), 1.0):
+            next_stop += 1
+        h_wanted = h
+        if next_stop < len(stops) and tc + h > stops[next_stop]:
+            h = stops[next_stop] - tc
         tt = torch.as_tensor(tc, dtype=u.dtype, device=u.device)
         J = batched_jacobian(f, tt, u, f0)
         delta = math.sqrt(torch.finfo(u.dtype).eps) * max(abs(tc), h)
@@ -126,6 +137,9 @@ def odeint_rosenbrock(
                 out.append(u + h * (c1 * k1 + c2 * k2))
                 next_eval += 1
             u, tc, f0 = u_new, t_new, f2
+            if next_stop < len(stops) and abs(tc - stops[next_stop]) <= 1e-9 * max(abs(tc), 1.0):
+                tc = stops[next_stop]  # landed on a kink: go on with the step size wanted before it
+                h = max(h, h_wanted)
         worst = int(per_elem.argmax())
         factor = 0.9 * err_norm ** (-1.0 / 3.0) if err_norm > 0 else 5.0
         h = h * min(5.0, max(0.2, factor))

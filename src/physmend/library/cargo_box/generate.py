@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.integrate import solve_ivp
 
 from physmend.library.cargo_box._numeric import NumpyModel, piecewise_linear_inputs
 from physmend.library.cargo_box.model import INPUTS, OUTPUTS
@@ -221,8 +222,6 @@ def _truth_model() -> NumpyModel:
 
 def record_experiment(exp: Experiment, truth: NumpyModel | None = None) -> Record:
     """Simulate the truth in closed loop with the PI controllers and log it (deterministic)."""
-    from scipy.integrate import solve_ivp
-
     truth = truth or _truth_model()
     rng = np.random.default_rng([BASE_SEED, int(exp.id)])
     ambient_fn = ambient_signal(exp, rng)

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import sympy as sp
 
-from physmend.modeling import Model
+from physmend.modeling import Connector, Model
 from physmend.modeling import thermal as th
 
 T_UNIT = "degC"
@@ -106,7 +106,7 @@ def _box_parameters(m: Model) -> BoxParameters:
 
 
 def _insulated_wall(
-    m: Model, name: str, *, area: sp.Expr, inside: object, outside: object, layers: int,
+    m: Model, name: str, *, area: sp.Expr, inside: Connector, outside: Connector, layers: int,
     thickness: sp.Expr, k: sp.Expr, rho: sp.Expr, cp: sp.Expr, h_in: sp.Expr, h_out: sp.Expr,
     T_start: sp.Expr,
 ) -> th.Component:

@@ -41,6 +41,9 @@ def load_problem(cfg: Any) -> Problem:
     """
     from physmend.data import load_experiments
 
+    threads = int(cfg.get("threads", 1) or 1)
+    if torch.get_num_threads() != threads:  # small solves: thread hand-off costs more than it saves
+        torch.set_num_threads(threads)
     dtype = dtype_of(cfg)
     model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}).simplify()
     experiments = load_experiments(cfg.data, model)

@@ -78,9 +78,12 @@ def worst_windows(t: np.ndarray, residual: np.ndarray, *, length: float, count: 
     tt, rr = t[ok], residual[ok]
     if tt.size == 0:
         return []
-    starts = tt
+    full = tt <= tt[-1] - length  # only windows that fit inside the record
+    if not full.any():
+        full = tt == tt[0]
+    idx0 = np.nonzero(full)[0]
+    starts = tt[idx0]
     ends = np.searchsorted(tt, starts + length, side="right")
-    idx0 = np.arange(tt.size)
     c1 = np.concatenate([[0.0], np.cumsum(rr)])
     c2 = np.concatenate([[0.0], np.cumsum(rr**2)])
     n = ends - idx0
@@ -90,9 +93,10 @@ def worst_windows(t: np.ndarray, residual: np.ndarray, *, length: float, count: 
     chosen: list[Window] = []
     for i in order:
         s, e = float(starts[i]), float(starts[i] + length)
+        e = min(e, float(tt[-1]))
         if any(s < w.end and e > w.start for w in chosen):
             continue
-        chosen.append(Window(s, min(e, float(tt[-1])), float(rms[i]), float(mean[i])))
+        chosen.append(Window(s, e, float(rms[i]), float(mean[i])))
         if len(chosen) == count:
             break
     return chosen

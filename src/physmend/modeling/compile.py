@@ -71,6 +71,81 @@ def _stack(values: list, like: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass
+class AffineSplit:
+    """Rows of ``du/dt`` that are affine in states and inputs: ``A(p) u + B(p) x + c(p)``.
+
+    ``coeffs(p)`` returns the flat list of entries (A row-major, then B, then c); rows listed in
+    ``nonlinear`` are evaluated by ``rest`` instead (their A, B, c entries are zero).
+    """
+
+    n_states: int
+    n_inputs: int
+    coeffs: Callable[..., list]
+    nonlinear: list[int]
+    rest: Callable[..., list] | None
+
+
+def _affine_split(model: SimplifiedModel, u: list, x: list, p: list) -> AffineSplit:
+    n, m = len(u), len(x)
+    ux = set(u) | set(x)
+    entries: list[sp.Expr] = [sp.Integer(0)] * (n * n + n * m + n)
+    nonlinear: list[int] = []
+    for i, name in enumerate(model.state_names):
+        e = sp.expand(model.rhs[name]) if model.rhs[name].count_ops() < 400 else model.rhs[name]
+        row_a = [sp.diff(e, s) for s in u]
+        row_b = [sp.diff(e, s) for s in x]
+        if any(c.free_symbols & ux for c in row_a + row_b):
+            nonlinear.append(i)
+            continue
+        const = e.xreplace({s: 0 for s in ux})
+        for j, c in enumerate(row_a):
+            entries[i * n + j] = c
+        for k, c in enumerate(row_b):
+            entries[n * n + i * m + k] = c
+        entries[n * n + n * m + i] = const
+    coeffs = lambdify_torch(p, entries, f"model {model.name!r} affine coefficients")
+    rest = None
+    if nonlinear:
+        rest = lambdify_torch(u + x + p, [model.rhs[model.state_names[i]] for i in nonlinear], f"model {model.name!r} derivatives")
+    return AffineSplit(n, m, coeffs, nonlinear, rest)
+
+
+class BoundRhs:
+    """``du/dt`` for fixed parameters ``p (B, n_params)``: call with ``u (..., B, n)``, ``x (..., B, m)``.
+
+    Affine rows cost one batched matrix product; the coefficients are computed once here.
+    Gradients flow to ``p`` through the coefficients.
+    """
+
+    def __init__(self, split: AffineSplit, p: torch.Tensor) -> None:
+        n, m = split.n_states, split.n_inputs
+        like = torch.zeros(p.shape[:-1], dtype=p.dtype, device=p.device)
+        flat = _stack(split.coeffs(*p.unbind(-1)), like)
+        self.A = flat[..., : n * n].reshape(*p.shape[:-1], n, n)
+        self.B = flat[..., n * n : n * n + n * m].reshape(*p.shape[:-1], n, m)
+        self.c = flat[..., n * n + n * m :]
+        self.p = p
+        self.split = split
+
+    def __call__(self, u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        du = torch.einsum("...ij,...j->...i", self.A, u) + self.c
+        if self.split.n_inputs:
+            du = du + torch.einsum("...ij,...j->...i", self.B, x)
+        if self.split.rest is not None:
+            lead = torch.broadcast_shapes(u.shape[:-1], x.shape[:-1], self.p.shape[:-1])
+            like = torch.zeros(lead, dtype=u.dtype, device=u.device)
+            vals = _stack(self.split.rest(*u.unbind(-1), *x.unbind(-1), *self.p.unbind(-1)), like)
+            du = _scatter(du, vals, self.split.nonlinear)
+        return du
+
+
+def _scatter(du: torch.Tensor, vals: torch.Tensor, rows: list[int]) -> torch.Tensor:
+    du = du.expand(*vals.shape[:-1], du.shape[-1]).clone() if du.shape[:-1] != vals.shape[:-1] else du.clone()
+    du[..., rows] = vals
+    return du
+
+
+@dataclass
 class CompiledModel:
     """Torch functions of a :class:`SimplifiedModel` (see module docstring for shapes)."""
 
@@ -79,6 +154,7 @@ class CompiledModel:
     _observed: Callable[..., list]
     _outputs: Callable[..., list]
     _start: Callable[..., list]
+    _affine: AffineSplit | None = None
 
     @property
     def state_names(self) -> list[str]:
@@ -108,6 +184,12 @@ class CompiledModel:
     def rhs(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Derivatives ``du/dt``, shape ``(..., n_states)`` in state units per second."""
         return self._call(self._rhs, u, x, p)
+
+    def bind(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """``rhs`` with parameters ``p (B, n_params)`` fixed: ``f(u, x) -> du/dt``, fast for affine models."""
+        if self._affine is None:
+            return lambda u, x: self.rhs(u, x, p)
+        return BoundRhs(self._affine, p)
 
     def observed(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Algebraic (observed) variables, shape ``(..., n_observed)``."""
@@ -149,4 +231,5 @@ def compile_model(model: SimplifiedModel) -> CompiledModel:
         _observed=lambdify_torch(args, list(model.observed.values()), f"model {model.name!r} observed equations"),
         _outputs=lambdify_torch(args, list(model.outputs.values()), f"model {model.name!r} outputs"),
         _start=lambdify_torch(p, starts, f"model {model.name!r} start values"),
+        _affine=_affine_split(model, u, x, p),
     )

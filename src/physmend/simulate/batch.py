@@ -103,8 +103,10 @@ def simulate_batch(
     if inner.numel():  # input kinks: step onto them rather than across them
         options.setdefault("tstops" if method == "rosenbrock23" else "step_t", inner)
 
+    rhs = model.bind(p)
+
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return model.rhs(u, batch.inputs(t), p)
+        return rhs(u, batch.inputs(t))
 
     states = odeint(
         f, batch.u0 if u0 is None else u0, batch.t, method=method, rtol=rtol, atol=atol, options=options, names=batch.ids

@@ -28,7 +28,7 @@ def analyse(problem: Problem, traj: Trajectories, t: np.ndarray, cfg: Any) -> di
     sim = traj.outputs.detach().cpu().numpy()
     per: list[dict[str, Any]] = []
     fitted_roles = {"train", "validation"}
-    aliases = {n for n, e in model.observed.items() if e.is_Symbol}
+    aliases = _redundant_observed(model)
     for b, exp in enumerate(problem.experiments):
         rows = np.searchsorted(t, exp.obs_time)
         span = float(exp.obs_time[-1] - exp.obs_time[0]) if exp.obs_time.size > 1 else 0.0
@@ -81,6 +81,19 @@ def analyse(problem: Problem, traj: Trajectories, t: np.ndarray, cfg: Any) -> di
             "drift_rate": [asdict(c) for c in res.correlates(np.concatenate(sig_rate), pooled, n)] if sig_rate else [],
         }
     return {"fits": per, "correlates": corr, "fit_experiments": [problem.experiments[b].id for b in fit_idx]}
+
+
+def _redundant_observed(model: Any) -> set[str]:
+    """Observed variables that repeat a state, an input, a constant or (±) another observed variable."""
+    seen: set[Any] = {v.symbol for v in model.states} | {v.symbol for v in model.inputs}
+    out: set[str] = set()
+    for name, expr in model.observed.items():
+        key = -expr if expr.could_extract_minus_sign() else expr
+        if key in seen or not (expr.free_symbols - {v.symbol for v in model.parameters}):
+            out.add(name)
+        else:
+            seen.add(key)
+    return out
 
 
 def _clock(seconds: float, span: float) -> str:

@@ -7,5 +7,9 @@ from physmend.data import DataError
 from physmend.modeling.errors import ModelError
 from physmend.simulate.errors import SimulationError
 from physmend.tracking.store import TrackingError
+from physmend.ude.hybrid import UDEConfigError
+from physmend.ude.io import ArtifactError
 
-USER_ERRORS: tuple[type[Exception], ...] = (ConfigError, DataError, ModelError, SimulationError, TrackingError)
+USER_ERRORS: tuple[type[Exception], ...] = (
+    ArtifactError, ConfigError, DataError, ModelError, SimulationError, TrackingError, UDEConfigError,
+)

@@ -1,0 +1,172 @@
+"""The universal differential equation ``du/dt = f(u, x, p) + M ⊙ s ⊙ NN(z; θ)``.
+
+``z`` are normalised network inputs (states, chosen observed variables, exogenous inputs, chosen
+parameters), ``M`` selects the corrected equations and ``s`` scales each correction to the
+typical size of its state's derivative, so that a freshly initialised network perturbs the
+physics only slightly. Parameters declared uncertain can be estimated jointly (kept inside
+their bounds by a sigmoid).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+from torch import nn
+
+from physmend.modeling.compile import CompiledModel
+
+ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
+    "tanh": nn.Tanh,
+    "relu": nn.ReLU,
+    "gelu": nn.GELU,
+    "softplus": nn.Softplus,
+    "silu": nn.SiLU,
+    "sigmoid": nn.Sigmoid,
+    "elu": nn.ELU,
+}
+
+
+class UDEConfigError(ValueError):
+    """A ``ude.*`` setting does not fit the model; the message names the key."""
+
+
+def match_names(patterns: Sequence[str], names: Sequence[str], key: str) -> list[str]:
+    """Names matching any glob pattern, in model order; a pattern matching nothing is an error."""
+    out: list[str] = []
+    for pat in patterns:
+        hits = [n for n in names if fnmatch.fnmatchcase(n, str(pat))]
+        if not hits:
+            raise UDEConfigError(f"{key}: pattern {pat!r} matches no name of the model (names: {list(names)[:12]}…)")
+        out += [h for h in hits if h not in out]
+    return [n for n in names if n in out]
+
+
+@dataclass
+class HybridSpec:
+    """Everything needed to rebuild a hybrid model besides its weights (stored as JSON)."""
+
+    corrected: list[str]
+    in_states: list[str]
+    in_observed: list[str]
+    in_inputs: list[str]
+    in_parameters: list[str]
+    widths: list[int]
+    activation: str
+    mean: list[float]
+    std: list[float]
+    out_scale: list[float]
+    estimated: list[str] = field(default_factory=list)
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.in_states) + len(self.in_observed) + len(self.in_inputs) + len(self.in_parameters)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @property
+    def input_names(self) -> list[str]:
+        return self.in_states + self.in_observed + self.in_inputs + self.in_parameters
+
+
+def make_mlp(n_in: int, widths: Sequence[int], n_out: int, activation: str) -> nn.Sequential:
+    if activation not in ACTIVATIONS:
+        raise UDEConfigError(f"ude.activation must be one of {sorted(ACTIVATIONS)}, but got {activation!r}")
+    layers: list[nn.Module] = []
+    last = n_in
+    for w in widths:
+        layers += [nn.Linear(last, int(w)), ACTIVATIONS[activation]()]
+        last = int(w)
+    layers.append(nn.Linear(last, n_out))
+    return nn.Sequential(*layers)
+
+
+class HybridModel(nn.Module):
+    """Physics plus a neural correction of selected equations (see module docstring).
+
+    Shapes: states ``u (..., B, n_states)``, inputs ``x (..., B, n_inputs)``, parameters
+    ``p (B, n_params)``; corrections ``(..., B, n_corrected)`` in state units per second.
+    """
+
+    def __init__(self, compiled: CompiledModel, spec: HybridSpec, dtype: torch.dtype = torch.float64) -> None:
+        super().__init__()
+        self.compiled = compiled
+        self.spec = spec
+        names = compiled.state_names
+        self.corrected_idx = [names.index(n) for n in spec.corrected]
+        self.state_idx = [names.index(n) for n in spec.in_states]
+        self.observed_idx = [compiled.observed_names.index(n) for n in spec.in_observed]
+        self.input_idx = [compiled.input_names.index(n) for n in spec.in_inputs]
+        self.param_idx = [compiled.parameter_names.index(n) for n in spec.in_parameters]
+        self.register_buffer("mean", torch.tensor(spec.mean, dtype=dtype))
+        self.register_buffer("std", torch.tensor(spec.std, dtype=dtype))
+        self.register_buffer("out_scale", torch.tensor(spec.out_scale, dtype=dtype))
+        self.net = make_mlp(spec.n_inputs, spec.widths, len(spec.corrected), spec.activation).to(dtype)
+        with torch.no_grad():  # start with small corrections
+            last = self.net[-1]
+            last.weight.mul_(0.1)
+            last.bias.zero_()
+        params = {v.name: v for v in compiled.model.parameters}
+        self.est_idx = [compiled.parameter_names.index(n) for n in spec.estimated]
+        lo = [params[n].bounds[0] for n in spec.estimated]  # type: ignore[index]
+        hi = [params[n].bounds[1] for n in spec.estimated]  # type: ignore[index]
+        self.register_buffer("est_lo", torch.tensor(lo, dtype=dtype))
+        self.register_buffer("est_hi", torch.tensor(hi, dtype=dtype))
+        start = torch.tensor([params[n].value for n in spec.estimated], dtype=dtype)
+        frac = ((start - self.est_lo) / (self.est_hi - self.est_lo)).clamp(1e-4, 1 - 1e-4) if spec.estimated else start
+        self.est_raw = nn.Parameter(torch.logit(frac) if spec.estimated else torch.zeros(0, dtype=dtype))
+
+    # -- parameters -----------------------------------------------------------------------------
+    def parameters_for(self, p: torch.Tensor) -> torch.Tensor:
+        """``p (B, n_params)`` with the jointly estimated parameters replaced by their estimates."""
+        if not self.est_idx:
+            return p
+        values = self.est_lo + (self.est_hi - self.est_lo) * torch.sigmoid(self.est_raw)
+        p = p.clone()
+        p[:, self.est_idx] = values.to(p.dtype)
+        return p
+
+    def estimates(self) -> dict[str, float]:
+        if not self.est_idx:
+            return {}
+        values = self.est_lo + (self.est_hi - self.est_lo) * torch.sigmoid(self.est_raw)
+        return dict(zip(self.spec.estimated, values.detach().tolist()))
+
+    # -- the network ----------------------------------------------------------------------------
+    def features(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Raw (unnormalised) network inputs ``(..., B, n_features)`` in physical units."""
+        parts = [u[..., self.state_idx]]
+        lead = u.shape[:-1]
+        if self.observed_idx:
+            parts.append(self.compiled.observed(u, x, p)[..., self.observed_idx])
+        if self.input_idx:
+            parts.append(x[..., self.input_idx].expand(*lead, len(self.input_idx)))
+        if self.param_idx:
+            parts.append(p[..., self.param_idx].expand(*lead, len(self.param_idx)))
+        return torch.cat(parts, dim=-1)
+
+    def corrections(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Network corrections ``(..., B, n_corrected)`` in state units per second."""
+        z = (self.features(u, x, p) - self.mean) / self.std
+        return self.net(z) * self.out_scale
+
+    def rhs(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """``f(u, x) -> du/dt`` of the hybrid for parameters ``p (B, n_params)`` (already estimated)."""
+        physics = self.compiled.bind(p)
+        idx = self.corrected_idx
+        n = len(self.compiled.state_names)
+        if len(idx) == n and idx == list(range(n)):
+            return lambda u, x: physics(u, x) + self.corrections(u, x, p)
+
+        def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+            du = physics(u, x)
+            corr = self.corrections(u, x, p)
+            full = torch.zeros(*corr.shape[:-1], n, dtype=corr.dtype, device=corr.device)
+            full = full.index_copy(-1, torch.tensor(idx, device=corr.device), corr)
+            return du + full
+
+        return f

@@ -1,0 +1,458 @@
+"""Training a hybrid model: multiple shooting on the training records, honest evaluation.
+
+Training solves every segment of every training experiment in one batched fixed-step RK4
+solve (segment starts are trainable, a continuity penalty joins them; the first segment of each
+experiment starts from its known initial state). Every reported metric comes from simulating
+whole trajectories (single shooting, adaptive stiff solver) — never from the segments.
+
+Validation: validation experiments if the data config has any, otherwise the carved last part of
+each training record (``split_time``); training never sees those samples.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from physmend.problem import Problem
+from physmend.simulate import Batch, SimulationError, make_batch, odeint
+from physmend.ude.hybrid import HybridModel, HybridSpec, UDEConfigError, match_names
+
+
+class TrainingDiverged(RuntimeError):
+    """Training produced non-finite losses or trajectories; the message says when and why."""
+
+
+@dataclass
+class TrainResult:
+    """Outcome of one training run (see :func:`train`)."""
+
+    val_rmse: float
+    metrics: dict[str, float]
+    history: list[dict[str, float]]
+    artifacts: dict[str, str | bytes]
+    figures: dict[str, Any] = field(default_factory=dict)
+    hybrid: HybridModel | None = None
+
+
+# -- reference simulation, normalisation ---------------------------------------------------------
+@dataclass
+class Reference:
+    """The model as written, simulated on every experiment (no gradients)."""
+
+    batch: Batch
+    states: torch.Tensor  # (T, B, n)
+    derivs: torch.Tensor  # (T, B, n)
+    inputs: torch.Tensor  # (T, B, m)
+    observed: torch.Tensor  # (T, B, k)
+
+
+def _sim_opts(cfg: Any) -> dict[str, Any]:
+    return {
+        "method": str(cfg.simulate.method),
+        "rtol": float(cfg.simulate.rtol),
+        "atol": float(cfg.simulate.atol),
+        "options": dict(cfg.simulate.get("options") or {}),
+    }
+
+
+def _kinks(batch: Batch, method: str) -> dict[str, Any]:
+    knots = batch.inputs.knots
+    inner = knots[(knots > batch.t[0]) & (knots < batch.t[-1])]
+    if not inner.numel():
+        return {}
+    return {"tstops": inner} if method == "rosenbrock23" else {"step_t": inner}
+
+
+def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], batch: Batch, u0: torch.Tensor, sim: dict[str, Any]) -> torch.Tensor:
+    """Whole-trajectory simulation of ``rhs(u, x)`` on ``batch``: states ``(T, B, n)``."""
+    options = {**_kinks(batch, sim["method"]), **sim["options"]}
+
+    def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return rhs(u, batch.inputs(t))
+
+    return odeint(f, u0, batch.t, method=sim["method"], rtol=sim["rtol"], atol=sim["atol"], options=options, names=batch.ids)
+
+
+def reference(problem: Problem, cfg: Any) -> Reference:
+    model = problem.compiled
+    batch = make_batch(problem.experiments, model, problem.dtype)
+    with torch.no_grad():
+        rhs = model.bind(batch.params)
+        states = simulate_with(rhs, batch, batch.u0, _sim_opts(cfg))
+        x = batch.inputs.at(batch.t)
+        derivs = rhs(states, x)
+        observed = model.observed(states, x, batch.params[None])
+    return Reference(batch, states, derivs, x, observed)
+
+
+def _train_mask(problem: Problem, batch: Batch) -> torch.Tensor:
+    """``(T, B)`` True where a time belongs to a training sample (train role, before the split)."""
+    roles = torch.tensor([e.role == "train" for e in problem.experiments])
+    return (batch.t[:, None] < batch.split_time[None, :]) & roles[None, :]
+
+
+def _val_mask(problem: Problem, batch: Batch) -> torch.Tensor:
+    if any(e.role == "validation" for e in problem.experiments):
+        roles = torch.tensor([e.role == "validation" for e in problem.experiments])
+        return roles[None, :].expand(batch.t.shape[0], -1).clone()
+    roles = torch.tensor([e.role == "train" for e in problem.experiments])
+    return (batch.t[:, None] >= batch.split_time[None, :]) & roles[None, :]
+
+
+def _stats(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and std over masked ``(T, B)`` entries of ``values (T, B, k)``; std floored."""
+    v = values[mask]
+    mean = v.mean(0)
+    std = v.std(0) if v.shape[0] > 1 else torch.ones_like(mean)
+    floor = 1e-3 * mean.abs().clamp_min(1.0)
+    return mean, torch.where(std < floor, torch.maximum(floor, torch.ones_like(std) * (std < 1e-12)), std)
+
+
+def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
+    """Choose corrected equations and network inputs from ``cfg.ude``; normalise from ``ref``."""
+    ude = cfg.ude
+    model = problem.model
+    corrected = match_names(list(ude.corrected), model.state_names, "ude.corrected")
+    sel = ude.inputs
+    in_states = model.state_names if bool(sel.states) else []
+    in_observed = match_names(list(sel.observed or []), list(model.observed), "ude.inputs.observed")
+    in_inputs = model.input_names if bool(sel.inputs) else []
+    in_params = match_names(list(sel.parameters or []), model.parameter_names, "ude.inputs.parameters")
+    if not (in_states or in_observed or in_inputs or in_params):
+        raise UDEConfigError("ude.inputs selects no network input; enable states, inputs, observed or parameters")
+    estimated = [v.name for v in model.parameters if v.uncertain] if bool(cfg.train.estimate_parameters) else []
+    widths = [int(ude.width)] * int(ude.depth)
+    mask = _train_mask(problem, ref.batch)
+    cm = problem.compiled
+    feats = [ref.states[..., [cm.state_names.index(n) for n in in_states]]]
+    if in_observed:
+        feats.append(ref.observed[..., [cm.observed_names.index(n) for n in in_observed]])
+    if in_inputs:
+        feats.append(ref.inputs[..., [cm.input_names.index(n) for n in in_inputs]])
+    if in_params:
+        p = ref.batch.params[:, [cm.parameter_names.index(n) for n in in_params]]
+        feats.append(p[None].expand(ref.states.shape[0], -1, -1))
+    mean, std = _stats(torch.cat(feats, -1), mask)
+    d = ref.derivs[..., [cm.state_names.index(n) for n in corrected]][mask]
+    rms = d.pow(2).mean(0).sqrt()
+    rms = torch.where(rms > 0, rms, torch.ones_like(rms) * rms.max().clamp_min(1e-9))
+    return HybridSpec(
+        corrected=corrected,
+        in_states=in_states,
+        in_observed=in_observed,
+        in_inputs=in_inputs,
+        in_parameters=in_params,
+        widths=widths,
+        activation=str(ude.activation),
+        mean=mean.tolist(),
+        std=std.tolist(),
+        out_scale=(float(ude.output_scale) * rms).tolist(),
+        estimated=estimated,
+    )
+
+
+# -- multiple shooting ----------------------------------------------------------------------------
+@dataclass
+class Shooting:
+    """Segments of all training records on a uniform grid of step ``dt`` (s)."""
+
+    dt: float
+    steps: int  # grid steps per segment
+    exp_index: torch.Tensor  # (S,) batch element of each segment
+    first: torch.Tensor  # (S,) True for the first segment of an experiment
+    starts: torch.Tensor  # (S,) start time (s)
+    x_half: torch.Tensor  # (2*steps+1, S, m) inputs at every half step
+    obs_k: torch.Tensor  # (N,) grid interval of each observation
+    obs_w: torch.Tensor  # (N,) linear weight within the interval
+    obs_s: torch.Tensor  # (N,) segment of each observation
+    obs_j: torch.Tensor  # (N,) output index
+    obs_y: torch.Tensor  # (N,) measured value
+    next_of: torch.Tensor  # (S,) index of the following segment of the same experiment, -1 if last
+
+
+def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
+    dt = float(cfg.train.step)
+    seg = float(cfg.train.segment_length)
+    if not (dt > 0 and seg >= dt):
+        raise UDEConfigError(f"train.step and train.segment_length need 0 < step <= segment_length, but got ({dt}, {seg})")
+    steps = int(round(seg / dt))
+    dtype = batch.t.dtype
+    exp_idx, first, starts = [], [], []
+    obs: list[tuple[int, int, float, int, float]] = []
+    for b, e in enumerate(problem.experiments):
+        if e.role != "train":
+            continue
+        end = float(e.split_time) if e.split_time is not None else float(e.obs_time[-1])
+        n_seg = max(1, math.ceil(end / (steps * dt) - 1e-9))
+        base = len(starts)
+        for k in range(n_seg):
+            exp_idx.append(b)
+            first.append(k == 0)
+            starts.append(k * steps * dt)
+        for i, tt in enumerate(e.obs_time):
+            if tt >= end and e.split_time is not None:
+                break
+            s = min(int(tt // (steps * dt)), n_seg - 1)
+            local = (tt - starts[base + s]) / dt
+            k = min(int(local), steps - 1)
+            for j in range(e.obs.shape[1]):
+                y = e.obs[i, j]
+                if np.isfinite(y):
+                    obs.append((base + s, k, local - k, j, float(y)))
+    S = len(starts)
+    if S == 0:
+        raise UDEConfigError("training needs at least one experiment with role 'train'")
+    exp_t = torch.tensor(exp_idx)
+    start_t = torch.tensor(starts, dtype=dtype)
+    grid = start_t[None, :] + torch.arange(2 * steps + 1, dtype=dtype)[:, None] * (dt / 2)  # (2K+1, S)
+    xs = batch.inputs.select(exp_t)
+    x_half = xs.at(grid.reshape(-1)).reshape(2 * steps + 1, S, S, -1)
+    x_half = x_half[:, torch.arange(S), torch.arange(S)]  # each segment's own inputs
+    next_of = torch.full((S,), -1, dtype=torch.long)
+    for s in range(S - 1):
+        if exp_idx[s + 1] == exp_idx[s] and not first[s + 1]:
+            next_of[s] = s + 1
+    o = list(zip(*obs))
+    return Shooting(
+        dt=dt,
+        steps=steps,
+        exp_index=exp_t,
+        first=torch.tensor(first),
+        starts=start_t,
+        x_half=x_half,
+        obs_s=torch.tensor(o[0]),
+        obs_k=torch.tensor(o[1]),
+        obs_w=torch.tensor(o[2], dtype=dtype),
+        obs_j=torch.tensor(o[3]),
+        obs_y=torch.tensor(o[4], dtype=dtype),
+        next_of=next_of,
+    )
+
+
+def rk4_segments(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting) -> torch.Tensor:
+    """Fixed-step RK4 over all segments at once: states at grid points ``(steps+1, S, n)``."""
+    h = plan.dt
+    u = u0
+    out = [u]
+    for k in range(plan.steps):
+        x0, xm, x1 = plan.x_half[2 * k], plan.x_half[2 * k + 1], plan.x_half[2 * k + 2]
+        k1 = rhs(u, x0)
+        k2 = rhs(u + 0.5 * h * k1, xm)
+        k3 = rhs(u + 0.5 * h * k2, xm)
+        k4 = rhs(u + h * k3, x1)
+        u = u + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        out.append(u)
+    return torch.stack(out)
+
+
+# -- evaluation -------------------------------------------------------------------------------------
+def _pooled(err: torch.Tensor, mask: torch.Tensor) -> float:
+    e = err[mask]
+    e = e[torch.isfinite(e)]
+    return float(e.pow(2).mean().sqrt()) if e.numel() else float("nan")
+
+
+def evaluate(hybrid: HybridModel, problem: Problem, cfg: Any | None = None, *, sim: dict[str, Any] | None = None) -> dict[str, float]:
+    """Whole-trajectory metrics of ``hybrid`` on every experiment (single shooting).
+
+    ``val.rmse``: pooled RMSE over validation samples (output units; outputs scaled by their
+    training spread when their units differ); ``train.rmse`` likewise on training samples;
+    ``rmse.<experiment>.<output>`` per experiment and output (test experiments: report only).
+    """
+    return _evaluate(hybrid, problem, sim or _sim_opts(cfg))[0]
+
+
+def _evaluate(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor, Batch]:
+    batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    with torch.no_grad():
+        p = hybrid.parameters_for(batch.params)
+        try:
+            states = simulate_with(hybrid.rhs(p), batch, batch.u0, sim)
+        except SimulationError as exc:
+            raise TrainingDiverged(f"whole-trajectory simulation of the hybrid failed: {exc}") from exc
+        y = problem.compiled.outputs(states, batch.inputs.at(batch.t), p[None])
+    err = y - batch.obs  # (T, B, k), NaN where not measured
+    units = {problem.model.units.get(o, "") for o in problem.model.output_names}
+    if len(units) > 1:
+        scale = torch.nan_to_num(batch.obs[_train_mask(problem, batch)], nan=0.0).std(0).clamp_min(1e-12)
+        scaled = err / scale
+    else:
+        scaled = err
+    tm, vm = _train_mask(problem, batch), _val_mask(problem, batch)
+    metrics = {"val.rmse": _pooled(scaled, vm), "train.rmse": _pooled(scaled, tm)}
+    test = torch.tensor([e.role == "test" for e in problem.experiments])[None, :].expand_as(tm)
+    if bool(test.any()):
+        metrics["test.rmse"] = _pooled(scaled, test)
+    for b, e in enumerate(problem.experiments):
+        for j, out in enumerate(problem.model.output_names):
+            col = err[:, b, j]
+            col = col[torch.isfinite(col)]
+            metrics[f"rmse.{e.id}.{out}"] = float(col.pow(2).mean().sqrt()) if col.numel() else float("nan")
+    if not math.isfinite(metrics["val.rmse"]):
+        raise TrainingDiverged("validation RMSE is not finite (the hybrid trajectory left the finite range)")
+    return metrics, y, batch
+
+
+# -- training ----------------------------------------------------------------------------------------
+def _initial_segments(problem: Problem, ref: Reference, plan: Shooting) -> torch.Tensor:
+    """Segment starts from the model as written, with measured states set to their measurements."""
+    t = ref.batch.t
+    rows = torch.searchsorted(t, plan.starts).clamp(max=t.shape[0] - 1)
+    u = ref.states[rows, plan.exp_index].clone()  # (S, n)
+    names = problem.model.state_names
+    for j, out in enumerate(problem.model.output_names):
+        expr = problem.model.outputs[out]
+        if expr.is_Symbol and expr.name in names:
+            i = names.index(expr.name)
+            obs = ref.batch.obs[:, :, j]
+            for s in range(u.shape[0]):
+                col = obs[:, plan.exp_index[s]]
+                ok = torch.isfinite(col)
+                if ok.any():
+                    k = int(torch.argmin((t - plan.starts[s]).abs() + (~ok) * 1e30))
+                    u[s, i] = col[k]
+    return u
+
+
+def _output_spread(obs: torch.Tensor) -> torch.Tensor:
+    """Standard deviation of each output over finite training samples ``obs (N, k)``: ``(k,)``."""
+    cols = []
+    for c in obs.T:
+        c = c[torch.isfinite(c)]
+        cols.append(c.std() if c.numel() > 1 else torch.tensor(1.0, dtype=obs.dtype))
+    return torch.stack(cols).clamp_min(1e-9)
+
+
+def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]], None] | None = None) -> TrainResult:
+    """Train a hybrid model configured by ``cfg.ude`` and ``cfg.train`` on ``problem``.
+
+    ``report(epoch, metrics)`` is called after every evaluation (metrics include ``val.rmse``);
+    an exception it raises (e.g. a pruning signal) stops training and propagates.
+
+    Raises:
+        TrainingDiverged: the loss or a trajectory became non-finite.
+        UDEConfigError: a ``ude.*`` / ``train.*`` setting does not fit the model.
+    """
+    tc = cfg.train
+    torch.manual_seed(int(cfg.get("seed", 0)))
+    ref = reference(problem, cfg)
+    spec = build_spec(cfg, problem, ref)
+    hybrid = HybridModel(problem.compiled, spec, problem.dtype)
+    plan = plan_shooting(problem, ref.batch, cfg)
+    seg0 = _initial_segments(problem, ref, plan)
+    free = torch.nn.Parameter(seg0.clone())
+    fixed_first = ref.batch.u0[plan.exp_index]
+    state_scale = ref.states[_train_mask(problem, ref.batch)].std(0).clamp_min(1e-3)
+    out_std = _output_spread(ref.batch.obs[_train_mask(problem, ref.batch)])
+    params_seg = ref.batch.params[plan.exp_index]
+    groups = [{"params": list(hybrid.net.parameters()), "weight_decay": float(tc.weight_decay)},
+              {"params": [free], "weight_decay": 0.0}]
+    if spec.estimated:
+        groups.append({"params": [hybrid.est_raw], "weight_decay": 0.0})
+    opt = torch.optim.AdamW(groups, lr=float(tc.lr))
+    epochs = int(tc.epochs)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1)) if str(tc.schedule) == "cosine" else None
+    sim = _sim_opts(cfg)
+    eval_every = max(1, int(tc.eval_every))
+    patience = int(tc.patience)
+    cont_w = float(tc.continuity_weight)
+    history: list[dict[str, float]] = []
+    best: tuple[float, dict[str, Any], dict[str, float]] | None = None
+    since_best = 0
+    has_next = plan.next_of >= 0
+    outputs = problem.compiled.outputs
+    for epoch in range(1, epochs + 1):
+        opt.zero_grad(set_to_none=True)
+        p = hybrid.parameters_for(params_seg)
+        u0 = torch.where(plan.first[:, None], fixed_first, free)
+        traj = rk4_segments(hybrid.rhs(p), u0, plan)  # (K+1, S, n)
+        y_grid = outputs(traj, plan.x_half[0::2], p[None])  # (K+1, S, k)
+        ya = y_grid[plan.obs_k, plan.obs_s, plan.obs_j]
+        yb = y_grid[plan.obs_k + 1, plan.obs_s, plan.obs_j]
+        pred = ya + plan.obs_w * (yb - ya)
+        fit = (((pred - plan.obs_y) / out_std[plan.obs_j]) ** 2).mean()
+        loss = fit
+        if bool(has_next.any()):
+            gap = (traj[-1][has_next] - u0[plan.next_of[has_next]]) / state_scale
+            loss = loss + cont_w * gap.pow(2).mean()
+        if not torch.isfinite(loss):
+            raise TrainingDiverged(f"training loss became non-finite at epoch {epoch} (lr {float(tc.lr):g}); "
+                                   "try a smaller train.lr or train.step")
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(hybrid.parameters(), 10.0)
+        opt.step()
+        if sched is not None:
+            sched.step()
+        if epoch % eval_every == 0 or epoch == epochs:
+            metrics, _, _ = _evaluate(hybrid, problem, sim)
+            row = {"epoch": float(epoch), "loss": float(loss.detach()), "fit_loss": float(fit.detach()), **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
+            history.append(row)
+            if best is None or metrics["val.rmse"] < best[0]:
+                best = (metrics["val.rmse"], copy.deepcopy(hybrid.state_dict()), metrics)
+                since_best = 0
+            else:
+                since_best += 1
+            if report is not None:
+                report(epoch, row)
+            if patience > 0 and since_best >= patience:
+                break
+    assert best is not None
+    hybrid.load_state_dict(best[1])
+    metrics, y, batch = _evaluate(hybrid, problem, sim)
+    for name, value in hybrid.estimates().items():
+        metrics[f"estimate.{name}"] = value
+    return TrainResult(
+        val_rmse=metrics["val.rmse"],
+        metrics=metrics,
+        history=history,
+        artifacts=artifacts_of(hybrid, metrics),
+        figures=fit_figures(problem, batch, y, ref),
+        hybrid=hybrid,
+    )
+
+
+# -- artifacts -------------------------------------------------------------------------------------
+def artifacts_of(hybrid: HybridModel, metrics: dict[str, float]) -> dict[str, str | bytes]:
+    """Plain files: ``model/weights.pt`` (a state_dict of tensors) and ``model/hybrid.json``."""
+    buf = io.BytesIO()
+    torch.save({k: v.detach().cpu() for k, v in hybrid.state_dict().items()}, buf)
+    meta = {"spec": hybrid.spec.to_dict(), "estimates": hybrid.estimates(), "metrics": metrics, "format": 1}
+    return {"model/weights.pt": buf.getvalue(), "model/hybrid.json": json.dumps(meta, indent=2)}
+
+
+def fit_figures(problem: Problem, batch: Batch, y: torch.Tensor, ref: Reference) -> dict[str, Any]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figs: dict[str, Any] = {}
+    t = batch.t.numpy() / 3600
+    y_ref = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])
+    outs = problem.model.output_names
+    for b, e in enumerate(problem.experiments):
+        fig, axes = plt.subplots(len(outs), 1, figsize=(10, 2.6 * len(outs)), squeeze=False)
+        for j, out in enumerate(outs):
+            ax = axes[j, 0]
+            m = torch.isfinite(batch.obs[:, b, j]).numpy()
+            ax.plot(t[m], batch.obs[m, b, j].numpy(), ".", ms=2, color="0.5", label="measured")
+            ax.plot(t, y_ref[:, b, j].numpy(), "--", color="C3", lw=1, label="model as written")
+            ax.plot(t, y[:, b, j].numpy(), "-", color="C0", lw=1.2, label="hybrid (UDE)")
+            if e.split_time is not None:
+                ax.axvline(float(e.split_time) / 3600, color="k", lw=0.6, ls=":")
+            ax.set_ylabel(f"{out} [{problem.model.units.get(out, '')}]")
+            ax.legend(fontsize=7)
+        axes[-1, 0].set_xlabel("time [h]")
+        fig.suptitle(f"experiment {e.id} ({e.role})")
+        fig.tight_layout()
+        figs[f"plots/fit_{e.id}.png"] = fig
+    return figs

@@ -117,6 +117,16 @@ def _stats(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torc
     return mean, torch.where(std < floor, torch.maximum(floor, torch.ones_like(std) * (std < 1e-12)), std)
 
 
+def varying_parameters(problem: Problem) -> list[str]:
+    """Parameters whose values differ between training experiments (the configuration)."""
+    train = [e for e in problem.experiments if e.role == "train"]
+    if len(train) < 2:
+        return []
+    values = np.stack([np.asarray(e.parameters, dtype=float) for e in train])
+    varies = np.ptp(values, axis=0) > 1e-12 * np.maximum(np.abs(values).max(0), 1.0)
+    return [n for n, v in zip(problem.model.parameter_names, varies) if v]
+
+
 def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     """Choose corrected equations and network inputs from ``cfg.ude``; normalise from ``ref``."""
     ude = cfg.ude
@@ -126,7 +136,12 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     in_states = model.state_names if bool(sel.states) else []
     in_observed = match_names(list(sel.observed or []), list(model.observed), "ude.inputs.observed")
     in_inputs = model.input_names if bool(sel.inputs) else []
-    in_params = match_names(list(sel.parameters or []), model.parameter_names, "ude.inputs.parameters")
+    if isinstance(sel.parameters, str):
+        if sel.parameters != "auto":
+            raise UDEConfigError(f"ude.inputs.parameters must be 'auto' or a list of names/patterns, but got {sel.parameters!r}")
+        in_params = varying_parameters(problem)
+    else:
+        in_params = match_names(list(sel.parameters or []), model.parameter_names, "ude.inputs.parameters")
     if not (in_states or in_observed or in_inputs or in_params):
         raise UDEConfigError("ude.inputs selects no network input; enable states, inputs, observed or parameters")
     estimated = [v.name for v in model.parameters if v.uncertain] if bool(cfg.train.estimate_parameters) else []
@@ -349,9 +364,10 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
     plan = plan_shooting(problem, ref.batch, cfg)
     seg0 = _initial_segments(problem, ref, plan)
-    free = torch.nn.Parameter(seg0.clone())
     fixed_first = ref.batch.u0[plan.exp_index]
     state_scale = ref.states[_train_mask(problem, ref.batch)].std(0).clamp_min(1e-3)
+    # segment starts are trained as offsets in units of each state's spread (Adam steps are ~lr)
+    free = torch.nn.Parameter(torch.zeros_like(seg0))
     out_std = _output_spread(ref.batch.obs[_train_mask(problem, ref.batch)])
     params_seg = ref.batch.params[plan.exp_index]
     groups = [{"params": list(hybrid.net.parameters()), "weight_decay": float(tc.weight_decay)},
@@ -373,7 +389,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     for epoch in range(1, epochs + 1):
         opt.zero_grad(set_to_none=True)
         p = hybrid.parameters_for(params_seg)
-        u0 = torch.where(plan.first[:, None], fixed_first, free)
+        u0 = torch.where(plan.first[:, None], fixed_first, seg0 + free * state_scale)
         traj = rk4_segments(hybrid.rhs(p), u0, plan)  # (K+1, S, n)
         y_grid = outputs(traj, plan.x_half[0::2], p[None])  # (K+1, S, k)
         ya = y_grid[plan.obs_k, plan.obs_s, plan.obs_j]

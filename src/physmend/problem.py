@@ -45,6 +45,6 @@ def load_problem(cfg: Any) -> Problem:
     if torch.get_num_threads() != threads:  # small solves: thread hand-off costs more than it saves
         torch.set_num_threads(threads)
     dtype = dtype_of(cfg)
-    model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}).simplify()
+    model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}, cfg.model.get("corrections")).simplify()
     experiments = load_experiments(cfg.data, model)
     return Problem(model=model, compiled=compile_model(model), experiments=experiments, dtype=dtype)

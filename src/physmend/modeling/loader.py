@@ -44,8 +44,12 @@ def _import_builder(ref: str) -> Any:
         raise ModelError(f"model.builder: {where!r} has no function {func!r}") from None
 
 
-def load_model(builder: str, options: Mapping[str, Any] | None = None) -> Model:
-    """Call the builder named by ``builder`` with keyword ``options`` and return its :class:`Model`."""
+def load_model(builder: str, options: Mapping[str, Any] | None = None, corrections: str | None = None) -> Model:
+    """Call the builder named by ``builder`` with keyword ``options`` and return its :class:`Model`.
+
+    ``corrections``: an accepted corrections file (see :mod:`physmend.modeling.corrections`)
+    applied on top of the built model.
+    """
     fn = _import_builder(builder)
     try:
         model = fn(**dict(options or {}))
@@ -55,4 +59,9 @@ def load_model(builder: str, options: Mapping[str, Any] | None = None) -> Model:
         raise ModelError(
             f"model.builder {builder!r} must return a physmend.modeling.Model, but returned {type(model).__name__}"
         )
+    if corrections:
+        from physmend.modeling.corrections import apply_corrections, read_corrections
+
+        items, _ = read_corrections(corrections)
+        model = apply_corrections(model, items, where=str(corrections))
     return model

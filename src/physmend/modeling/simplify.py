@@ -40,6 +40,11 @@ class SimplifiedModel:
         owner: state name -> component whose equation defines its derivative.
         equation_text: state name -> that equation as the user wrote it.
         aliases: eliminated variable name -> the expression it was replaced by.
+        der_coefficient: state name -> ``a`` in its equation ``a·der(x) + g = 0`` (parameters
+            only; 1 where it is not a parameter expression). A term ``Δ`` added to the right-hand
+            side of that equation changes ``der(x)`` by ``Δ / a``, so ``a·correction`` is the
+            correction in the units of the equation's terms (e.g. W for a heat balance).
+        equations: state name -> the user's equation defining its derivative.
     """
 
     name: str
@@ -53,6 +58,8 @@ class SimplifiedModel:
     equation_text: dict[str, str] = field(default_factory=dict)
     aliases: dict[str, sp.Expr] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)
+    der_coefficient: dict[str, sp.Expr] = field(default_factory=dict)
+    equations: dict[str, Equation] = field(default_factory=dict)
 
     @property
     def state_names(self) -> list[str]:
@@ -205,17 +212,23 @@ def simplify(model: Model) -> SimplifiedModel:
         outputs[name] = out.expr.xreplace(full)
     owner: dict[str, str] = {}
     text: dict[str, str] = {}
+    defining: dict[str, Equation] = {}
     by_der = {sym: name for name, sym in ders.items()}
     for sym, eq in solved_by.items():
         if sym in by_der:
-            owner[by_der[sym]] = eq.owner
-            text[by_der[sym]] = str(eq)
+            defining[by_der[sym]] = eq
     for name, sym in ders.items():
-        if name not in owner:  # derivative eliminated as an alias: find the equation naming it
+        if name not in defining:  # derivative eliminated as an alias: find the equation naming it
             for eq in eqs:
                 if sym in eq.residual.free_symbols:
-                    owner[name], text[name] = eq.owner, str(eq)
+                    defining[name] = eq
                     break
+    param_syms = {v.symbol for v in model.of_kind("parameter")}
+    coefficient: dict[str, sp.Expr] = {}
+    for name, eq in defining.items():
+        owner[name], text[name] = eq.owner, str(eq)
+        a = sp.diff(eq.residual, ders[name])
+        coefficient[name] = a if a != 0 and a.free_symbols <= param_syms else sp.Integer(1)
     units = {v.name: v.unit for v in model.variables.values()}
     units.update({o.name: o.unit for o in model.outputs.values()})
     return SimplifiedModel(
@@ -230,6 +243,8 @@ def simplify(model: Model) -> SimplifiedModel:
         equation_text=text,
         aliases={k.name: v for k, v in subs.items()},
         units=units,
+        der_coefficient=coefficient,
+        equations=defining,
     )
 
 

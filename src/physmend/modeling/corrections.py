@@ -1,0 +1,133 @@
+"""Corrections: discovered terms added to the equations of the components where they act.
+
+A corrections file (YAML, written by ``physmend accept``) lists terms; each is added to the
+right-hand side of the equation that defines one state's derivative, so a corrected model reads
+like the original (``C·der(T) = port.Q_flow + Δ``). The term's constants become model parameters
+named ``<owner>.<name>`` so they can be estimated and reported with units.
+
+Example file::
+
+    physmend_corrections: 1
+    model: cargo_box
+    source_run_id: 3f2c…
+    corrections:
+      - state: zone1.air.T
+        term: "c1*(zone2.air.T - zone1.air.T)*sqrt(Abs(zone2.air.T - zone1.air.T))"
+        unit: W
+        constants: {c1: 1.02}
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import sympy as sp
+import yaml
+
+from physmend.modeling.errors import ModelError
+from physmend.modeling.expressions import parse_expression
+from physmend.modeling.model import Equation, Model, der_name
+
+FORMAT = 1
+
+
+@dataclass
+class Correction:
+    """One term ``term`` (in model variable names and constant names) added to ``state``'s equation."""
+
+    state: str
+    term: str
+    constants: dict[str, float] = field(default_factory=dict)
+    unit: str = ""
+    mechanism: str = ""
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"state": self.state, "term": self.term, "constants": dict(self.constants)}
+        if self.unit:
+            out["unit"] = self.unit
+        if self.mechanism:
+            out["mechanism"] = self.mechanism
+        return out
+
+
+def constant_parameter_name(owner: str, state: str, constant: str) -> str:
+    base = owner or state.rsplit(".", 1)[0]
+    return f"{base}.{constant}"
+
+
+def apply_corrections(model: Model, corrections: list[Correction], *, where: str = "corrections") -> Model:
+    """A copy of ``model`` with each correction added to its state's defining equation."""
+    out = copy.deepcopy(model)
+    by_name = {v.name: v.symbol for v in out.variables.values()}
+    for k, corr in enumerate(corrections):
+        label = f"{where}: correction {k + 1} ({corr.state})"
+        var = out.variables.get(corr.state)
+        if var is None or var.kind != "state":
+            raise ModelError(f"{label}: {corr.state!r} is not a state of model {out.name!r}")
+        der = out.der(var.symbol)
+        idx = [i for i, eq in enumerate(out.equations) if der in eq.residual.free_symbols]
+        if len(idx) != 1:
+            raise ModelError(
+                f"{label}: der({corr.state}) must appear in exactly one equation of model {out.name!r}, "
+                f"but appears in {len(idx)}"
+            )
+        eq = out.equations[idx[0]]
+        owner = eq.owner or corr.state.rsplit(".", 1)[0]
+        consts: dict[str, sp.Symbol] = {}
+        for cname, value in corr.constants.items():
+            pname = constant_parameter_name(owner, corr.state, cname)
+            if pname in out.variables:
+                consts[cname] = out.variables[pname].symbol
+                continue
+            consts[cname] = out.parameter(pname, float(value), description=f"constant of the correction of {corr.state}")
+        term = parse_expression(corr.term, {**by_name, **consts}, where=f"{label}: term {corr.term!r}")
+        if any(s.name.startswith("der(") or s.name == der_name(corr.state) for s in term.free_symbols):
+            raise ModelError(f"{label}: a correction may not contain derivatives")
+        out.equations[idx[0]] = Equation(eq.lhs, eq.rhs + term, owner=eq.owner, label=(eq.label or owner) + " + correction")
+    return out
+
+
+def read_corrections(path: str | Path) -> tuple[list[Correction], dict[str, Any]]:
+    """Read a corrections file; returns the corrections and the file's other keys (model, run ID …)."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise ModelError(f"model.corrections: file {str(path)!r} does not exist")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ModelError(f"model.corrections: {path} is not valid YAML: {exc}") from None
+    if not isinstance(data, Mapping) or data.get("physmend_corrections") != FORMAT:
+        raise ModelError(f"model.corrections: {path} must be a physmend corrections file (physmend_corrections: {FORMAT})")
+    items = data.get("corrections")
+    if not isinstance(items, list) or not items:
+        raise ModelError(f"model.corrections: {path} needs a non-empty list under 'corrections'")
+    out = []
+    for k, item in enumerate(items):
+        if not isinstance(item, Mapping) or "state" not in item or "term" not in item:
+            raise ModelError(f"model.corrections: {path}: corrections[{k}] needs keys 'state' and 'term'")
+        out.append(
+            Correction(
+                state=str(item["state"]),
+                term=str(item["term"]),
+                constants={str(c): float(v) for c, v in (item.get("constants") or {}).items()},
+                unit=str(item.get("unit", "")),
+                mechanism=str(item.get("mechanism", "")),
+            )
+        )
+    meta = {k: v for k, v in data.items() if k != "corrections"}
+    return out, meta
+
+
+def write_corrections(path: str | Path, corrections: list[Correction], **meta: Any) -> Path:
+    """Write a corrections file (never overwrites an existing file)."""
+    path = Path(path).expanduser()
+    if path.exists():
+        raise ModelError(f"corrections file {str(path)!r} exists already; physmend never overwrites it")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = {"physmend_corrections": FORMAT, **meta, "corrections": [c.to_dict() for c in corrections]}
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path

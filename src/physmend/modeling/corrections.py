@@ -59,8 +59,14 @@ def constant_parameter_name(owner: str, state: str, constant: str) -> str:
     return f"{base}.{constant}"
 
 
-def apply_corrections(model: Model, corrections: list[Correction], *, where: str = "corrections") -> Model:
-    """A copy of ``model`` with each correction added to its state's defining equation."""
+def apply_corrections(
+    model: Model, corrections: list[Correction], *, where: str = "corrections", estimate: bool = False
+) -> Model:
+    """A copy of ``model`` with each correction added to its state's defining equation.
+
+    ``estimate=True`` declares the constants uncertain (bounds: same sign, a factor 20 either
+    way) so that training can re-fit them through the simulator.
+    """
     out = copy.deepcopy(model)
     by_name = {v.name: v.symbol for v in out.variables.values()}
     for k, corr in enumerate(corrections):
@@ -83,7 +89,14 @@ def apply_corrections(model: Model, corrections: list[Correction], *, where: str
             if pname in out.variables:
                 consts[cname] = out.variables[pname].symbol
                 continue
-            consts[cname] = out.parameter(pname, float(value), description=f"constant of the correction of {corr.state}")
+            value = float(value)
+            bounds = None
+            if estimate:
+                lo, hi = (value / 20, value * 20) if value > 0 else (value * 20, value / 20) if value < 0 else (-1.0, 1.0)
+                bounds = (lo, hi)
+            consts[cname] = out.parameter(
+                pname, value, description=f"constant of the correction of {corr.state}", uncertain=estimate, bounds=bounds
+            )
         term = parse_expression(corr.term, {**by_name, **consts}, where=f"{label}: term {corr.term!r}")
         if any(s.name.startswith("der(") or s.name == der_name(corr.state) for s in term.free_symbols):
             raise ModelError(f"{label}: a correction may not contain derivatives")

@@ -105,6 +105,8 @@ class HybridModel(nn.Module):
         self.register_buffer("mean", torch.tensor(spec.mean, dtype=dtype))
         self.register_buffer("std", torch.tensor(spec.std, dtype=dtype))
         self.register_buffer("out_scale", torch.tensor(spec.out_scale, dtype=dtype))
+        # 1 keeps a correction, 0 masks it (output masking evaluates top-k subsets this way)
+        self.register_buffer("out_mask", torch.ones(len(spec.corrected), dtype=dtype), persistent=False)
         self.net = make_mlp(spec.n_inputs, spec.widths, len(spec.corrected), spec.activation).to(dtype)
         with torch.no_grad():  # start with small corrections
             last = self.net[-1]
@@ -152,7 +154,15 @@ class HybridModel(nn.Module):
     def corrections(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Network corrections ``(..., B, n_corrected)`` in state units per second."""
         z = (self.features(u, x, p) - self.mean) / self.std
-        return self.net(z) * self.out_scale
+        return self.net(z) * (self.out_scale * self.out_mask)
+
+    def corrections_of_z(self, z: torch.Tensor) -> torch.Tensor:
+        """Corrections from normalised features ``z (..., n_features)`` (for sensitivities)."""
+        return self.net(z) * (self.out_scale * self.out_mask)
+
+    def keep_only(self, names: list[str]) -> None:
+        """Mask every correction except those of the states ``names``."""
+        self.out_mask = torch.tensor([1.0 if n in names else 0.0 for n in self.spec.corrected], dtype=self.out_mask.dtype)
 
     def rhs(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``f(u, x) -> du/dt`` of the hybrid for parameters ``p (B, n_params)`` (already estimated)."""

@@ -159,7 +159,8 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     mean, std = _stats(torch.cat(feats, -1), mask)
     d = ref.derivs[..., [cm.state_names.index(n) for n in corrected]][mask]
     rms = d.pow(2).mean(0).sqrt()
-    rms = torch.where(rms > 0, rms, torch.ones_like(rms) * rms.max().clamp_min(1e-9))
+    if corrected:
+        rms = torch.where(rms > 0, rms, torch.ones_like(rms) * rms.max().clamp_min(1e-9))
     return HybridSpec(
         corrected=corrected,
         in_states=in_states,

@@ -1,0 +1,66 @@
+"""``physmend accept RUN_ID`` / ``physmend reject RUN_ID``: the engineer's decision on a proposal.
+
+Accept writes the proposal's corrections file (readable YAML with the source run ID) into
+``decide.output_dir`` — never overwriting a file — and tags the run; the corrected model is then
+loaded with ``model.corrections=<file>``. Reject only tags the run (with an optional reason).
+Nothing else is changed: not the user's model files, not earlier runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+DECISION_TAG = "physmend.decision"
+
+
+def _proposal(cfg: Any, run_id: str | None) -> tuple[Any, Any]:
+    from physmend.tracking import TrackingError, get_run, open_store
+
+    if not run_id:
+        raise TrackingError("accept/reject need the run ID of a proposal: physmend accept RUN_ID")
+    store = open_store(cfg.tracking)
+    run = get_run(store, run_id, stage="propose")
+    if run.info.status != "FINISHED":
+        raise TrackingError(f"proposal {run_id!r} did not finish (status {run.info.status})")
+    done = run.data.tags.get(DECISION_TAG)
+    if done:
+        raise TrackingError(f"proposal {run_id!r} was already {done} by {run.data.tags.get('physmend.decided_by', '?')}")
+    return store, run
+
+
+def accept(cfg: Any, source_run_id: str | None = None) -> str:
+    """Write the accepted corrections file and tag the proposal; returns the proposal's run ID."""
+    from physmend.modeling import read_corrections, write_corrections
+    from physmend.tracking import download_artifact
+    from physmend.tracking.selection import os_user, utc_now
+
+    store, run = _proposal(cfg, source_run_id)
+    run_id = run.info.run_id
+    corrections, meta = read_corrections(download_artifact(store, run_id, "corrections.yaml"))
+    model_name = meta.get("model", "model")
+    target = Path(str(cfg.decide.output_dir)).expanduser() / f"{model_name}-{run_id[:8]}.yaml"
+    path = write_corrections(target, corrections, model=model_name, source_run_id=run_id,
+                             accepted_by=os_user(), accepted_at=utc_now())
+    store.client.set_tag(run_id, DECISION_TAG, "accepted")
+    store.client.set_tag(run_id, "physmend.decided_by", os_user())
+    store.client.set_tag(run_id, "physmend.decided_at", utc_now())
+    store.client.set_tag(run_id, "physmend.corrections_file", str(path.resolve()))
+    print(f"accepted proposal {run_id}: corrections written to {path}")
+    print(f"use the corrected model: physmend diagnose model.corrections={path}")
+    return run_id
+
+
+def reject(cfg: Any, source_run_id: str | None = None) -> str:
+    """Tag the proposal as rejected (with ``decide.reason``); returns its run ID."""
+    from physmend.tracking.selection import os_user, utc_now
+
+    store, run = _proposal(cfg, source_run_id)
+    run_id = run.info.run_id
+    store.client.set_tag(run_id, DECISION_TAG, "rejected")
+    store.client.set_tag(run_id, "physmend.decided_by", os_user())
+    store.client.set_tag(run_id, "physmend.decided_at", utc_now())
+    if str(cfg.decide.reason):
+        store.client.set_tag(run_id, "physmend.reject_reason", str(cfg.decide.reason))
+    print(f"rejected proposal {run_id}; your model is unchanged")
+    return run_id

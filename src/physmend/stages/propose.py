@@ -1,0 +1,204 @@
+"""``physmend propose [RUN_ID]``: the corrected model, validated on held-out experiments, with a report.
+
+Simulates the model as written and the corrected model (the user's equations plus the chosen
+formulas, attached to the equations they correct) on every experiment, and writes a Markdown and
+HTML report: the equations corrected, the formula, its size in physical units, before/after
+fits and RMSE per experiment against the sensor noise, and the physical mechanism its form
+suggests (from the mechanism catalogue). Nothing changes the user's model until ``accept``.
+"""
+
+from __future__ import annotations
+
+import html
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sympy as sp
+import torch
+from omegaconf import OmegaConf
+
+STAGE = "propose"
+
+
+def _simulate(problem: Any, cfg: Any) -> tuple[Any, Any]:
+    from physmend.simulate import make_batch, simulate_batch
+
+    batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    with torch.no_grad():
+        traj = simulate_batch(problem.compiled, batch, method=str(cfg.simulate.method), rtol=float(cfg.simulate.rtol),
+                              atol=float(cfg.simulate.atol), options=dict(cfg.simulate.get("options") or {}))
+    return batch, traj
+
+
+def _rmse(err: torch.Tensor) -> float:
+    e = err[torch.isfinite(err)]
+    return float(e.pow(2).mean().sqrt()) if e.numel() else float("nan")
+
+
+def md_to_html(md: str, title: str) -> str:
+    """A small Markdown subset (headings, tables, lists, images, paragraphs) as a standalone page."""
+    out, in_table, in_list = [], False, False
+    for line in md.splitlines():
+        if line.startswith("|"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            if all(set(c) <= set("-: ") for c in cells):
+                continue
+            tag = "th" if not in_table else "td"
+            if not in_table:
+                out.append("<table>")
+                in_table = True
+            out.append("<tr>" + "".join(f"<{tag}>{html.escape(c)}</{tag}>" for c in cells) + "</tr>")
+            continue
+        if in_table:
+            out.append("</table>")
+            in_table = False
+        if line.startswith("- "):
+            if not in_list:
+                out.append("<ul>")
+                in_list = True
+            out.append(f"<li>{html.escape(line[2:])}</li>")
+            continue
+        if in_list:
+            out.append("</ul>")
+            in_list = False
+        if line.startswith("#"):
+            level = len(line) - len(line.lstrip("#"))
+            out.append(f"<h{level}>{html.escape(line[level:].strip())}</h{level}>")
+        elif line.startswith("![") and "](" in line:
+            alt, src = line[2:].split("](", 1)
+            out.append(f'<img alt="{html.escape(alt)}" src="{html.escape(src.rstrip(")"))}" style="max-width:100%">')
+        elif line.startswith("    "):
+            out.append(f"<pre>{html.escape(line.strip())}</pre>")
+        elif line.strip():
+            out.append(f"<p>{html.escape(line)}</p>")
+    if in_table:
+        out.append("</table>")
+    if in_list:
+        out.append("</ul>")
+    style = "body{font-family:sans-serif;max-width:70em;margin:auto}table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px}"
+    return f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{style}</style></head><body>{''.join(out)}</body></html>"
+
+
+def run(cfg: Any, source_run_id: str | None = None) -> str:
+    """Run the propose stage on a symbolic run (default: the latest); returns the new run ID."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from physmend.explain.mechanisms import classify
+    from physmend.explain.residuals import noise_floor
+    from physmend.modeling import read_corrections
+    from physmend.modeling.expressions import parse_expression
+    from physmend.problem import load_problem
+    from physmend.stages.common import merged, resolve
+    from physmend.tracking import download_artifact, open_store, stage_run
+
+    store = open_store(cfg.tracking)
+    src_run = resolve(store, source_run_id, stages=("symbolic",), latest=source_run_id is None)
+    cfg_path = download_artifact(store, src_run.info.run_id, "config.yaml")
+    corr_path = download_artifact(store, src_run.info.run_id, "corrections.yaml")
+    base_cfg = merged(OmegaConf.load(cfg_path), cfg, "propose")  # type: ignore[arg-type]
+    base_cfg.model.corrections = None
+    corrections, _ = read_corrections(corr_path)
+    before = load_problem(base_cfg)
+    fixed_cfg = base_cfg.copy()
+    with tempfile.TemporaryDirectory() as tmp:
+        local = Path(tmp) / "corrections.yaml"
+        local.write_text(Path(corr_path).read_text())
+        fixed_cfg.model.corrections = str(local)
+        after = load_problem(fixed_cfg)
+    batch, traj0 = _simulate(before, base_cfg)
+    _, traj1 = _simulate(after, base_cfg)
+    outs = before.model.output_names
+    rows = []
+    for b, e in enumerate(before.experiments):
+        for j, out in enumerate(outs):
+            y = batch.obs[:, b, j]
+            r0, r1 = _rmse(traj0.outputs[:, b, j] - y), _rmse(traj1.outputs[:, b, j] - y)
+            m = torch.isfinite(y)
+            noise = noise_floor(batch.t[m].numpy(), y[m].numpy())
+            rows.append({"experiment": e.id, "role": e.role, "output": out, "before": r0, "after": r1,
+                         "noise": noise, "improvement": r0 / r1 if r1 > 0 else float("inf")})
+    # the formulas along the corrected trajectories (training experiments) and their mechanisms
+    sm = after.model
+    train_b = [b for b, e in enumerate(after.experiments) if e.role == "train"]
+    samples: dict[str, np.ndarray] = {}
+    names_all = sm.state_names + sm.input_names
+    values_all = torch.cat([traj1.states, traj1.inputs], -1)
+    for i, n in enumerate(names_all):
+        samples[n] = values_all[:, train_b, i].reshape(-1).numpy()
+    for i, n in enumerate(sm.observed):
+        samples[n] = traj1.observed[:, train_b, i].reshape(-1).numpy()
+    for i, n in enumerate(sm.parameter_names):
+        samples[n] = np.repeat(batch.params[train_b, i].numpy()[None], batch.t.shape[0], 0).reshape(-1)
+    terms = []
+    symbols = {v.name: v.symbol for v in sm.states + sm.inputs + sm.parameters}
+    for c in corrections:
+        consts = {k: v for k, v in c.constants.items()}
+        expr = parse_expression(c.term, {**symbols, **{k: sp.Symbol(k) for k in consts}}, where=c.state)
+        expr_num = expr.subs(consts)
+        from physmend.modeling.compile import lambdify_torch
+
+        fn = lambdify_torch(list(symbols.values()), [expr_num], "correction")
+        vals = fn(*[torch.as_tensor(samples[n]) for n in symbols])[0]
+        vals = torch.as_tensor(vals).expand(len(next(iter(samples.values())))).numpy()
+        units = {n: sm.units.get(n, "") for n in samples}
+        matches = classify(expr_num, {n: samples[n] for n in samples if n in {s.name for s in expr_num.free_symbols}}, units)
+        terms.append({"state": c.state, "term": c.term, "constants": consts, "unit": c.unit, "expr": str(expr_num),
+                      "equation": sm.equation_text.get(c.state, ""), "owner": sm.owner.get(c.state, ""),
+                      "mean_abs": float(np.mean(np.abs(vals))), "max_abs": float(np.max(np.abs(vals))),
+                      "mechanisms": [m.__dict__ for m in matches]})
+    title = f"physmend proposal — model {before.model.name}"
+    md = [f"# {title}", "", f"Source: symbolic run {src_run.info.run_id}. Nothing changes your model until "
+          f"`physmend accept <this run>`.", "", "## Equations corrected", ""]
+    for t in terms:
+        md += [f"- **{t['state']}** (component `{t['owner']}`): {t['equation']}  **+ {t['expr']}**",
+               f"- size along the training trajectories: mean |term| = {t['mean_abs']:.3g} {t['unit']}, "
+               f"max |term| = {t['max_abs']:.3g} {t['unit']}"]
+        for m in t["mechanisms"][:2]:
+            md.append(f"- suggested mechanism: **{m['name']}** — {m['explanation']} (form match R² {m['r2']:.3f})")
+        md.append("")
+    md += ["## Fit before and after (whole-trajectory simulation)", "",
+           "| experiment | role | output | RMSE before | RMSE after | improvement | noise (est.) | after / noise |",
+           "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| {r['experiment']} | {r['role']} | {r['output']} | {r['before']:.3g} | {r['after']:.3g} | "
+                  f"{r['improvement']:.1f}× | {r['noise']:.3g} | {r['after'] / r['noise']:.1f} |")
+    md.append("")
+    held = [r for r in rows if r["role"] == "test"]
+    if held:
+        md.append(f"Held-out experiments (never used for any choice): RMSE improved "
+                  f"{min(r['improvement'] for r in held):.1f}× to {max(r['improvement'] for r in held):.1f}×.")
+    md += ["", "## Plots", ""] + [f"![fit {e.id}](plots/fit_{e.id}.png)" for e in before.experiments]
+    report = "\n".join(md) + "\n"
+    with stage_run(store, base_cfg, stage=STAGE, source_run_id=src_run.info.run_id, run_name="propose") as run_:
+        run_.log_metrics({f"rmse_before.{r['experiment']}.{r['output']}": r["before"] for r in rows})
+        run_.log_metrics({f"rmse_after.{r['experiment']}.{r['output']}": r["after"] for r in rows})
+        run_.log_json({"rows": rows, "terms": terms}, "proposal.json")
+        run_.log_text(report, "report.md")
+        run_.log_text(md_to_html(report, title), "report.html")
+        run_.log_text(Path(corr_path).read_text(), "corrections.yaml")
+        if bool(cfg.propose.plots):
+            t = batch.t.numpy() / 3600
+            for b, e in enumerate(before.experiments):
+                fig, axes = plt.subplots(len(outs), 1, figsize=(10, 2.6 * len(outs)), squeeze=False)
+                for j, out in enumerate(outs):
+                    ax = axes[j, 0]
+                    m = torch.isfinite(batch.obs[:, b, j]).numpy()
+                    ax.plot(t[m], batch.obs[m, b, j].numpy(), ".", ms=2, color="0.5", label="measured")
+                    ax.plot(t, traj0.outputs[:, b, j].numpy(), "--", color="C3", lw=1, label="model as written")
+                    ax.plot(t, traj1.outputs[:, b, j].numpy(), "-", color="C2", lw=1.2, label="corrected model")
+                    ax.set_ylabel(f"{out} [{before.model.units.get(out, '')}]")
+                    ax.legend(fontsize=7)
+                axes[-1, 0].set_xlabel("time [h]")
+                fig.suptitle(f"experiment {e.id} ({e.role})")
+                fig.tight_layout()
+                run_.log_figure(fig, f"plots/fit_{e.id}.png")
+                plt.close(fig)
+        run_id = run_.run_id
+    print(report)
+    print(f"propose run: {run_id}\nnext: physmend accept {run_id}   (or: physmend reject {run_id} decide.reason='…')")
+    return run_id

@@ -1,0 +1,80 @@
+"""``physmend sensitivity [RUN_ID]``: which inputs the kept corrections depend on.
+
+Jacobian of the kept corrections with respect to every network input along the training
+trajectories (``torch.func``), each column scaled by its input's spread; inputs ranked by mean
+absolute sensitivity; a heatmap (inputs × outputs, top inputs marked); the top k (or the names
+given in ``sensitivity.inputs``) are passed on to symbolic regression.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+STAGE = "sensitivity"
+
+
+def _heatmap(jac_mean: Any, inputs: list[str], outputs: list[str], top: list[str]) -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.32 * len(inputs)), 1.2 + 0.5 * len(outputs)))
+    im = ax.imshow(jac_mean, aspect="auto", cmap="viridis")
+    ax.set_xticks(range(len(inputs)), [("★ " if n in top else "") + n for n in inputs], rotation=90, fontsize=7)
+    ax.set_yticks(range(len(outputs)), outputs, fontsize=8)
+    fig.colorbar(im, ax=ax, label="mean |d correction / d input| · std(input), per output max = 1")
+    ax.set_title("sensitivity of the kept corrections (★: passed to symbolic regression)")
+    fig.tight_layout()
+    return fig
+
+
+def run(cfg: Any, source_run_id: str | None = None) -> str:
+    """Run the sensitivity stage on a mask run (default: the latest); returns the new run ID."""
+    import matplotlib.pyplot as plt
+
+    from physmend.stages.common import load_source, merged, resolve
+    from physmend.tracking import TrackingError, open_store, stage_run
+    from physmend.ude.analysis import input_jacobian, rank_inputs, training_trajectories
+
+    store = open_store(cfg.tracking)
+    src_run = resolve(store, source_run_id, stages=("mask", "trial"), latest=source_run_id is None)
+    src = load_source(store, src_run)
+    work = merged(src.cfg, cfg, "sensitivity")
+    hybrid, problem = src.hybrid, src.problem
+    kept = [n for n, m in zip(hybrid.spec.corrected, hybrid.out_mask.tolist()) if m > 0]
+    traj = training_trajectories(hybrid, problem, work)
+    jac = input_jacobian(hybrid, traj, max_rows=int(cfg.sensitivity.max_rows))
+    ranking = rank_inputs(hybrid, jac, kept)
+    names = hybrid.spec.input_names
+    if cfg.sensitivity.inputs:
+        chosen = [str(n) for n in cfg.sensitivity.inputs]
+        unknown = [n for n in chosen if n not in names]
+        if unknown:
+            raise TrackingError(
+                f"sensitivity.inputs names {unknown}, which are not inputs of the network of run "
+                f"{src_run.info.run_id!r}; its inputs are {names}"
+            )
+        how = "chosen by name (sensitivity.inputs)"
+    else:
+        chosen = [n for n, _ in ranking[: int(cfg.sensitivity.top_k)]]
+        how = f"top {int(cfg.sensitivity.top_k)} by sensitivity"
+    rows = [hybrid.spec.corrected.index(k) for k in kept]
+    mag = jac[:, rows].abs().mean(0)
+    mag = (mag / mag.amax(-1, keepdim=True).clamp_min(1e-300)).numpy()
+    with stage_run(store, work, stage=STAGE, source_run_id=src_run.info.run_id, run_name="sensitivity",
+                   tags={"physmend.inputs": ",".join(chosen), "physmend.kept": ",".join(kept)}) as run_:
+        run_.log_params({"inputs": ",".join(chosen), "kept": ",".join(kept), "how": how})
+        run_.log_json({"ranking": ranking, "chosen": chosen, "kept": kept, "inputs": names,
+                       "matrix": mag.tolist()}, "sensitivity.json")
+        fig = _heatmap(mag, names, kept, chosen)
+        run_.log_figure(fig, "plots/sensitivity.png")
+        plt.close(fig)
+        run_id = run_.run_id
+    lines = [f"# physmend sensitivity — source {src_run.data.tags.get('physmend.stage')} run {src_run.info.run_id}", "",
+             f"Kept corrections: {', '.join(kept)}. Inputs ranked by mean |∂correction/∂input|·std(input):", ""]
+    lines += [f"{i + 1:3d}. {'★' if n in chosen else ' '} {n}  {s:.3f}" for i, (n, s) in enumerate(ranking[:12])]
+    lines += ["", f"Passed to symbolic regression ({how}): {', '.join(chosen)}"]
+    print("\n".join(lines))
+    print(f"\nsensitivity run: {run_id}\nnext: physmend symbolic {run_id}")
+    return run_id

@@ -1,0 +1,98 @@
+"""What a trained hybrid model learned: trajectories, correction ranking, input sensitivities.
+
+All analyses run along whole-trajectory simulations of the hybrid on the *training* samples
+(train-role experiments before their validation split): choices made from them never look at
+validation or test data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from physmend.problem import Problem
+from physmend.simulate import Batch, make_batch
+from physmend.ude.hybrid import HybridModel
+from physmend.ude.train import _sim_opts, _train_mask, simulate_with
+
+
+@dataclass
+class HybridTrajectories:
+    """Training samples along the hybrid's trajectories, flattened to ``N`` rows.
+
+    ``u (N, n_states)``, ``x (N, n_inputs)``, ``p (N, n_params)``, ``du (N, n_states)`` the
+    hybrid's derivatives, ``corr (N, n_corrected)`` the network's corrections, ``z (N, n_features)``
+    the normalised network inputs, ``exp (N,)`` batch index, ``t (N,)`` time (s).
+    """
+
+    u: torch.Tensor
+    x: torch.Tensor
+    p: torch.Tensor
+    du: torch.Tensor
+    corr: torch.Tensor
+    z: torch.Tensor
+    exp: torch.Tensor
+    t: torch.Tensor
+    batch: Batch
+
+
+def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> HybridTrajectories:
+    batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    with torch.no_grad():
+        p = hybrid.parameters_for(batch.params)
+        rhs = hybrid.rhs(p)
+        states = simulate_with(rhs, batch, batch.u0, _sim_opts(cfg))
+        x = batch.inputs.at(batch.t)
+        mask = _train_mask(problem, batch)
+        pp = p[None].expand(states.shape[0], -1, -1)
+        du = rhs(states, x)
+        corr = hybrid.corrections(states, x, p)
+        z = (hybrid.features(states, x, p) - hybrid.mean) / hybrid.std
+    tt = batch.t[:, None].expand_as(mask)
+    ee = torch.arange(batch.size)[None, :].expand_as(mask)
+    return HybridTrajectories(states[mask], x[mask], pp[mask], du[mask], corr[mask], z[mask], ee[mask], tt[mask], batch)
+
+
+def rank_corrections(hybrid: HybridModel, traj: HybridTrajectories) -> list[tuple[str, float]]:
+    """The seed paper's heuristic ``mean_t |ΔNN_i| / max_t |du_i/dt|``, largest first.
+
+    Means and maxima are taken per experiment and averaged, so long records do not dominate.
+    """
+    idx = hybrid.corrected_idx
+    scores = torch.zeros(len(idx), dtype=traj.corr.dtype)
+    exps = traj.exp.unique()
+    for e in exps:
+        m = traj.exp == e
+        mean_corr = traj.corr[m].abs().mean(0)
+        max_du = traj.du[m][:, idx].abs().amax(0).clamp_min(1e-300)
+        scores += mean_corr / max_du
+    scores /= max(len(exps), 1)
+    order = torch.argsort(scores, descending=True).tolist()
+    return [(hybrid.spec.corrected[i], float(scores[i])) for i in order]
+
+
+def input_jacobian(hybrid: HybridModel, traj: HybridTrajectories, *, max_rows: int = 4000) -> torch.Tensor:
+    """``J[r, i, j] = d corr_i / d z_j`` along the trajectories: ``(R, n_corrected, n_features)``.
+
+    ``z`` are the normalised inputs, so each column is already scaled by its input's spread
+    (``d corr / d input · std(input)``). At most ``max_rows`` evenly spaced rows are used.
+    """
+    z = traj.z
+    if z.shape[0] > max_rows:
+        z = z[torch.linspace(0, z.shape[0] - 1, max_rows).long()]
+    with torch.no_grad():
+        jac = torch.func.vmap(torch.func.jacrev(hybrid.corrections_of_z))(z)
+    return jac
+
+
+def rank_inputs(hybrid: HybridModel, jac: torch.Tensor, keep: list[str] | None = None) -> list[tuple[str, float]]:
+    """Inputs ranked by mean |J| over samples and the kept outputs (each output normalised to max 1)."""
+    rows = [hybrid.spec.corrected.index(k) for k in keep] if keep else list(range(jac.shape[1]))
+    mag = jac[:, rows].abs().mean(0)  # (n_kept, n_features)
+    mag = mag / mag.amax(-1, keepdim=True).clamp_min(1e-300)
+    score = mag.mean(0)
+    order = torch.argsort(score, descending=True).tolist()
+    names = hybrid.spec.input_names
+    return [(names[i], float(score[i])) for i in order]

@@ -10,6 +10,7 @@ their bounds by a sigmoid).
 from __future__ import annotations
 
 import fnmatch
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -81,7 +82,9 @@ def make_mlp(n_in: int, widths: Sequence[int], n_out: int, activation: str) -> n
     for w in widths:
         layers += [nn.Linear(last, int(w)), ACTIVATIONS[activation]()]
         last = int(w)
-    layers.append(nn.Linear(last, n_out))
+    with warnings.catch_warnings():  # n_out == 0 (no correction) warns about an empty init
+        warnings.simplefilter("ignore", UserWarning)
+        layers.append(nn.Linear(last, n_out))
     return nn.Sequential(*layers)
 
 
@@ -169,6 +172,8 @@ class HybridModel(nn.Module):
         physics = self.compiled.bind(p)
         idx = self.corrected_idx
         n = len(self.compiled.state_names)
+        if not idx:  # nothing corrected: the physics alone (e.g. re-fitting a formula's constants)
+            return physics
         if len(idx) == n and idx == list(range(n)):
             return lambda u, x: physics(u, x) + self.corrections(u, x, p)
 
@@ -176,7 +181,7 @@ class HybridModel(nn.Module):
             du = physics(u, x)
             corr = self.corrections(u, x, p)
             full = torch.zeros(*corr.shape[:-1], n, dtype=corr.dtype, device=corr.device)
-            full = full.index_copy(-1, torch.tensor(idx, device=corr.device), corr)
+            full = full.index_copy(-1, torch.tensor(idx, dtype=torch.long, device=corr.device), corr)
             return du + full
 
         return f

@@ -8,8 +8,12 @@ from physmend.modeling.errors import ModelError
 from physmend.simulate.errors import SimulationError
 from physmend.tracking.store import TrackingError
 from physmend.ude.hybrid import UDEConfigError
+from physmend.symbolic import SymbolicError
+from physmend.explain.mechanisms import MechanismError
+from physmend.ude.train import TrainingDiverged
 from physmend.ude.io import ArtifactError
 
 USER_ERRORS: tuple[type[Exception], ...] = (
-    ArtifactError, ConfigError, DataError, ModelError, SimulationError, TrackingError, UDEConfigError,
+    ArtifactError, ConfigError, DataError, MechanismError, ModelError, SimulationError, SymbolicError,
+    TrackingError, TrainingDiverged, UDEConfigError,
 )

@@ -28,10 +28,10 @@ def test_correction_goes_into_the_component_equation_in_its_units(tmp_path: Path
     base = two_rooms()
     corr = Correction(state="a.T", term="-k*(a.T - b.T)*sqrt(Abs(a.T - b.T))", constants={"k": 2.0}, unit="W")
     fixed = apply_corrections(base, [corr])
-    assert len(base.equations) == len(fixed.equations) and "a.k" not in base.variables  # original untouched
+    assert len(base.equations) == len(fixed.equations) and "a.T_k" not in base.variables  # original untouched
     sm = fixed.simplify()
     assert sm.der_coefficient["a.T"] == pytest.approx(1.2 * 30.0 * 1005.0)
-    assert "a.k" in sm.parameter_names and "+ correction" in sm.equation_text["a.T"]
+    assert "a.T_k" in sm.parameter_names and "+ correction" in sm.equation_text["a.T"]
     cm = compile_model(sm)
     u = torch.tensor([[20.0, 10.0]], dtype=torch.float64)
     du = cm.rhs(u, torch.zeros(1, 0, dtype=torch.float64), cm.default_parameters()[None])[0]

@@ -3,7 +3,7 @@
 A corrections file (YAML, written by ``physmend accept``) lists terms; each is added to the
 right-hand side of the equation that defines one state's derivative, so a corrected model reads
 like the original (``C·der(T) = port.Q_flow + Δ``). The term's constants become model parameters
-named ``<owner>.<name>`` so they can be estimated and reported with units.
+named ``<state>_<name>`` so they can be estimated and reported with units.
 
 Example file::
 
@@ -55,8 +55,8 @@ class Correction:
 
 
 def constant_parameter_name(owner: str, state: str, constant: str) -> str:
-    base = owner or state.rsplit(".", 1)[0]
-    return f"{base}.{constant}"
+    """The model parameter holding ``constant`` of the correction of ``state`` (unique per state)."""
+    return f"{state}_{constant}"
 
 
 def apply_corrections(

@@ -20,6 +20,7 @@ import torch
 from omegaconf import OmegaConf
 
 STAGE = "propose"
+MIN_MECHANISM_R2 = 0.9  # a mechanism is suggested only when its form reproduces the term this well
 
 
 def _simulate(problem: Any, cfg: Any) -> tuple[Any, Any]:
@@ -111,7 +112,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         fixed_cfg.model.corrections = str(local)
         after = load_problem(fixed_cfg)
     batch, traj0 = _simulate(before, base_cfg)
-    _, traj1 = _simulate(after, base_cfg)
+    batch1, traj1 = _simulate(after, base_cfg)
     outs = before.model.output_names
     rows = []
     for b, e in enumerate(before.experiments):
@@ -133,7 +134,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     for i, n in enumerate(sm.observed):
         samples[n] = traj1.observed[:, train_b, i].reshape(-1).numpy()
     for i, n in enumerate(sm.parameter_names):
-        samples[n] = np.repeat(batch.params[train_b, i].numpy()[None], batch.t.shape[0], 0).reshape(-1)
+        samples[n] = np.repeat(batch1.params[train_b, i].numpy()[None], batch1.t.shape[0], 0).reshape(-1)
     terms = []
     symbols = {v.name: v.symbol for v in sm.states + sm.inputs + sm.parameters}
     for c in corrections:
@@ -148,18 +149,25 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         units = {n: sm.units.get(n, "") for n in samples}
         matches = classify(expr_num, {n: samples[n] for n in samples if n in {s.name for s in expr_num.free_symbols}}, units)
         terms.append({"state": c.state, "term": c.term, "constants": consts, "unit": c.unit, "expr": str(expr_num),
-                      "equation": sm.equation_text.get(c.state, ""), "owner": sm.owner.get(c.state, ""),
+                      "equation": before.model.equation_text.get(c.state, ""), "owner": sm.owner.get(c.state, ""),
                       "mean_abs": float(np.mean(np.abs(vals))), "max_abs": float(np.max(np.abs(vals))),
                       "mechanisms": [m.__dict__ for m in matches]})
     title = f"physmend proposal — model {before.model.name}"
     md = [f"# {title}", "", f"Source: symbolic run {src_run.info.run_id}. Nothing changes your model until "
           f"`physmend accept <this run>`.", "", "## Equations corrected", ""]
     for t in terms:
-        md += [f"- **{t['state']}** (component `{t['owner']}`): {t['equation']}  **+ {t['expr']}**",
+        consts = ", ".join(f"{k} = {v:.4g}" for k, v in t["constants"].items())
+        md += [f"- **{t['state']}** (component `{t['owner']}`): {t['equation']}  **+ {t['term']}**"
+               + (f" with {consts}" if consts else ""),
                f"- size along the training trajectories: mean |term| = {t['mean_abs']:.3g} {t['unit']}, "
                f"max |term| = {t['max_abs']:.3g} {t['unit']}"]
-        for m in t["mechanisms"][:2]:
+        good = [m for m in t["mechanisms"] if m["r2"] >= MIN_MECHANISM_R2]
+        for m in good[:2]:
             md.append(f"- suggested mechanism: **{m['name']}** — {m['explanation']} (form match R² {m['r2']:.3f})")
+        if not good:
+            best = t["mechanisms"][0] if t["mechanisms"] else None
+            md.append("- no catalogued mechanism matches this form" + (
+                f" (closest: {best['name']}, R² {best['r2']:.2f})" if best else ""))
         md.append("")
     md += ["## Fit before and after (whole-trajectory simulation)", "",
            "| experiment | role | output | RMSE before | RMSE after | improvement | noise (est.) | after / noise |",

@@ -46,6 +46,27 @@ def name_constants(expr: sp.Expr, prefix: str = "c") -> tuple[sp.Expr, dict[str,
     return expr.xreplace(mapping), consts
 
 
+def canonical_form(expr: sp.Expr, columns: dict[str, np.ndarray], units: dict[str, str], min_r2: float) -> tuple[sp.Expr, str, float] | None:
+    """The mechanism catalogue's clean form of ``expr`` (one constant) if it reproduces ``expr``
+    on the samples with R² ≥ ``min_r2``; ``None`` otherwise."""
+    from physmend.explain.mechanisms import classify, load_catalogue
+
+    used = {s.name for s in expr.free_symbols}
+    if not used or not used <= set(columns):
+        return None
+    matches = classify(expr, {n: columns[n] for n in used}, units, top=1)
+    if not matches or matches[0].r2 < min_r2:
+        return None
+    m = matches[0]
+    entry = next(e for e in load_catalogue() if e.id == m.id)
+    mapping = {sp.Symbol(ph): sp.Symbol(var) for ph, var in m.variables.items()}
+    for s in entry.template.free_symbols:
+        if s.name in m.variables:
+            mapping[s] = sp.Symbol(m.variables[s.name])
+    clean = entry.template.xreplace({**mapping, **{s: sp.Float(m.coefficient) for s in entry.template.free_symbols if s.name == "c"}})
+    return clean, m.name, m.r2
+
+
 def targets(hybrid: Any, problem: Any, traj: Any, kept: list[str]) -> dict[str, np.ndarray]:
     """``a·correction`` per kept state along the training samples: ``(N,)`` each, equation units."""
     from physmend.modeling.compile import lambdify_torch
@@ -95,6 +116,62 @@ def refit(cfg: Any, problem_cfg: Any, corrections: list, epochs: int) -> tuple[l
     return fitted, result.metrics
 
 
+def _correction(problem: Any, state: str, front: Any, idx: int, why: str, columns: dict[str, np.ndarray],
+                units: dict[str, str], sc: Any, chosen: dict[str, Any]) -> Any:
+    """The correction for Pareto candidate ``idx`` (clean catalogue form when it fits); records ``chosen``."""
+    from physmend.modeling import Correction
+
+    unit = equation_unit(problem.model, state)
+    raw = front.candidates[idx].expr
+    canonical = canonical_form(raw, columns, units, float(sc.canonical_r2))
+    if canonical is not None:
+        why += (f" Its form matches the catalogue's {canonical[1]!r} with R² {canonical[2]:.4f} ≥ "
+                f"{float(sc.canonical_r2)} on the training samples, so that clean form is used.")
+    expr, consts = name_constants(canonical[0] if canonical is not None else raw)
+    chosen[state] = {"index": idx, "why": why, "expr": str(raw), "unit": unit,
+                     "canonical": str(canonical[0]) if canonical is not None else None}
+    return Correction(state=state, term=sp.sstr(expr), constants=consts, unit=unit)
+
+
+def corrected_metrics(problem_cfg: Any, corrections: list) -> dict[str, float]:
+    """Whole-trajectory metrics (``val.rmse`` …) of the model with ``corrections`` and no network."""
+    from physmend.modeling import write_corrections
+    from physmend.problem import load_problem
+    from physmend.ude import HybridModel, evaluate
+    from physmend.ude.hybrid import HybridSpec
+
+    with tempfile.TemporaryDirectory(prefix="physmend-eval-") as tmp:
+        work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
+        work.model.corrections = str(write_corrections(Path(tmp) / "c.yaml", corrections))
+        problem = load_problem(work)
+    spec = HybridSpec(corrected=[], in_states=problem.model.state_names[:1], in_observed=[], in_inputs=[],
+                      in_parameters=[], widths=[], activation="tanh", mean=[0.0], std=[1.0], out_scale=[])
+    return evaluate(HybridModel(problem.compiled, spec, problem.dtype), problem, work)
+
+
+def _unstable(problem_cfg: Any, corrections: list) -> str | None:
+    """Why the corrected model cannot be simulated on the training experiments, or ``None``."""
+    from physmend.modeling import write_corrections
+    from physmend.problem import load_problem
+    from physmend.simulate import SimulationError, make_batch, simulate_batch
+
+    with tempfile.TemporaryDirectory(prefix="physmend-check-") as tmp:
+        work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
+        work.model.corrections = str(write_corrections(Path(tmp) / "c.yaml", corrections))
+        problem = load_problem(work)
+    train_exps = [e for e in problem.experiments if e.role == "train"]
+    batch = make_batch(train_exps, problem.compiled, problem.dtype)
+    try:
+        with torch.no_grad():
+            traj = simulate_batch(problem.compiled, batch, method=str(work.simulate.method),
+                                  rtol=float(work.simulate.rtol), atol=float(work.simulate.atol))
+    except SimulationError as exc:
+        return str(exc).split(":")[0]
+    if not bool(torch.isfinite(traj.outputs).all()):
+        return "non-finite outputs"
+    return None
+
+
 def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run symbolic regression on a sensitivity run (default: the latest); returns the new run ID."""
     from physmend.modeling import Correction
@@ -128,20 +205,44 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     X = np.stack([columns[n] for n in x_names], axis=1)
     units = {n: problem.model.units.get(n, "") for n in x_names}
     y_all = targets(hybrid, problem, traj, kept)
-    fronts, chosen, corrections = {}, {}, []
+    fronts, chosen, picks = {}, {}, {}
     choices = dict(sc.choice or {})
     for state in kept:
-        unit = equation_unit(problem.model, state)
         front = fit(X, y_all[state], x_names, backend=str(sc.backend), target=state, units=units,
                     options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)))
-        idx, why = choose(front, rule=str(sc.rule), index=choices.get(state))
         fronts[state] = front
-        expr, consts = name_constants(front.candidates[idx].expr)
-        chosen[state] = {"index": idx, "why": why, "expr": str(front.candidates[idx].expr), "unit": unit}
-        corrections.append(Correction(state=state, term=sp.sstr(expr), constants=consts, unit=unit))
+        picks[state] = choose(front, rule=str(sc.rule), index=choices.get(state))
+    fallback = ""
+    while True:
+        corrections = [_correction(problem, state, fronts[state], *picks[state], columns, units, sc, chosen) for state in kept]
+        trouble = _unstable(work, corrections)
+        if trouble is None:
+            break
+        movable = [s for s in kept if picks[s][0] > 0 and s not in choices]
+        if not movable:
+            raise TrackingError(f"the corrected model cannot be simulated with any formula on the fronts: {trouble}")
+        worst = max(movable, key=lambda s: fronts[s].candidates[picks[s][0]].complexity)
+        i = picks[worst][0] - 1
+        fallback += f" Formula {picks[worst][0]} for {worst} made the corrected model fail ({trouble}); fell back to {i}."
+        picks[worst] = (i, f"Fallback along the front to index {i} (a more complex formula made the corrected model unstable).")
     metrics: dict[str, float] = {}
     if int(sc.refit_epochs) > 0:
-        corrections, metrics = refit(cfg, work, corrections, int(sc.refit_epochs))
+        before = corrected_metrics(work, corrections)
+        from physmend.ude import TrainingDiverged
+
+        try:
+            fitted, after = refit(cfg, work, corrections, int(sc.refit_epochs))
+        except TrainingDiverged as exc:
+            fitted, after = corrections, {"val.rmse": float("inf"), "error": str(exc)}  # type: ignore[dict-item]
+        if after["val.rmse"] < before["val.rmse"]:
+            corrections, metrics = fitted, after
+            refit_note = f"constants re-fitted through the simulator (validation RMSE {before['val.rmse']:.4g} → {after['val.rmse']:.4g})"
+        else:
+            metrics = before
+            refit_note = (f"re-fitting the constants through the simulator did not improve the validation RMSE "
+                          f"({before['val.rmse']:.4g} → {after['val.rmse']:.4g}); the regression's constants are kept")
+    else:
+        refit_note = "constants as found by the regression (symbolic.refit_epochs=0)"
     with stage_run(store, work, stage=STAGE, source_run_id=sens_run.info.run_id, run_name="symbolic",
                    tags={"physmend.kept": ",".join(kept), "physmend.model_run_id": model_run.info.run_id}) as run_:
         run_.log_params({"backend": sc.backend, "rule": sc.rule, "inputs": ",".join(x_names)})
@@ -158,6 +259,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         run_.log_metrics({k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse", "test.rmse")})
         run_id = run_.run_id
     lines = [f"# physmend symbolic — {sc.backend}, inputs {', '.join(x_names)}", ""]
+    if fallback:
+        lines += [fallback.strip(), ""]
     for state, front in fronts.items():
         lines.append(f"## {state} (correction in {chosen[state]['unit'] or 'equation units'})")
         for i, c in enumerate(front.candidates):
@@ -167,7 +270,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     lines.append("")
     for c in corrections:
         consts = ", ".join(f"{k} = {v:.4g}" for k, v in c.constants.items())
-        lines.append(f"{c.state}: + {c.term}   ({consts}; re-fitted through the simulator)")
+        lines.append(f"{c.state}: + {c.term}   ({consts})")
+    lines.append(refit_note + ".")
     if metrics:
         lines.append(f"Corrected model (no network): validation RMSE {metrics.get('val.rmse', float('nan')):.4g}.")
     print("\n".join(lines))

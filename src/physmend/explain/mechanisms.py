@@ -1,0 +1,350 @@
+"""Mechanism catalogue: which physical mechanism a discovered formula's form suggests.
+
+The catalogue (``mechanisms.yaml`` beside this file, or a user's own file) is data: generic
+templates such as ``c*(a - b)*sqrt(Abs(a - b))`` with unit rules for their placeholders and an
+explanation. :func:`classify` is numerical, so algebraically different but equivalent forms of a
+formula match the same template: the formula is evaluated on sample values of its variables
+(e.g. trajectories), and for every template and every admissible assignment of variables to
+placeholders the coefficient ``c`` is fitted by least squares; the R² of that fit ranks the
+matches.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+import string
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import sympy
+import yaml
+
+from physmend.symbolic._expr import abs_bars, evaluate, mse_r2
+
+DEFAULT_CATALOGUE = Path(__file__).with_name("mechanisms.yaml")
+
+#: function names a template may use; every other identifier is a placeholder (or ``c``).
+TEMPLATE_FUNCTIONS: dict[str, Any] = {
+    "sqrt": sympy.sqrt,
+    "Abs": sympy.Abs,
+    "abs": sympy.Abs,
+    "sign": sympy.sign,
+    "exp": sympy.exp,
+    "log": sympy.log,
+    "tanh": sympy.tanh,
+    "Max": sympy.Max,
+    "Min": sympy.Min,
+}
+COEFFICIENT = "c"
+_ENTRY_KEYS = {"id", "name", "template", "explanation", "same_unit", "units", "different_unit"}
+_REQUIRED = ("id", "name", "template", "explanation")
+_ID = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+class MechanismError(ValueError):
+    """Bad input to :func:`classify` (missing samples, mismatched lengths); states rule and value."""
+
+
+class CatalogueError(MechanismError):
+    """A mechanism catalogue file is malformed; the message names the file and the entry."""
+
+
+@dataclass(frozen=True)
+class Mechanism:
+    """One catalogue entry, validated.
+
+    Attributes:
+        shape: the template divided by ``c`` (an expression of the placeholders only).
+        text: the template as written in the catalogue.
+        placeholders: the template's placeholder names, sorted.
+        complexity: ``sympy.count_ops`` of the template: lower is simpler (breaks ties).
+    """
+
+    id: str
+    name: str
+    template: sympy.Expr
+    shape: sympy.Expr
+    placeholders: tuple[str, ...]
+    same_unit: tuple[tuple[str, ...], ...]
+    units: dict[str, str]
+    different_unit: tuple[tuple[str, ...], ...]
+    explanation: str
+    complexity: int
+    text: str = ""
+
+    def admissible(self, assignment: Mapping[str, str], units: Mapping[str, str]) -> bool:
+        """Whether mapping placeholders to variables (``assignment``) obeys the unit rules."""
+        unit = {p: (units.get(v) or "").strip() or None for p, v in assignment.items()}
+        for p, required in self.units.items():
+            if unit[p] != required:
+                return False
+        for group in self.same_unit:
+            found = {unit[p] for p in group}
+            if None in found or len(found) != 1:
+                return False
+        for group in self.different_unit:
+            known = [unit[p] for p in group if unit[p] is not None]
+            if len(known) != len(set(known)):
+                return False
+        return True
+
+    def describe(self, assignment: Mapping[str, str]) -> str:
+        """The explanation with the variable names filled in."""
+        return " ".join(self.explanation.format_map(dict(assignment)).split())
+
+
+@dataclass
+class MechanismMatch:
+    """How well one catalogue template, with variables assigned, reproduces a formula.
+
+    Attributes:
+        id, name: the catalogue entry.
+        explanation: the entry's explanation with the actual variable names filled in.
+        variables: placeholder -> variable name.
+        coefficient: fitted ``c`` (units of the formula divided by the template's).
+        r2: R² of ``c * template`` against the formula on the samples.
+        formula: the template with ``c`` and the variables filled in (``c`` to 4 significant digits).
+    """
+
+    id: str
+    name: str
+    explanation: str
+    variables: dict[str, str]
+    coefficient: float
+    r2: float
+    formula: str = ""
+    complexity: int = field(default=0, repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict."""
+        return asdict(self)
+
+
+def _parse_template(text: str, where: str) -> sympy.Expr:
+    names = set(re.findall(r"[A-Za-z_]\w*", text)) - set(TEMPLATE_FUNCTIONS)
+    local = dict(TEMPLATE_FUNCTIONS)
+    local.update({n: sympy.Symbol(n) for n in names})
+    try:
+        expr = sympy.sympify(text, locals=local)
+    except (sympy.SympifyError, SyntaxError, TypeError) as exc:
+        raise CatalogueError(f"{where}: template must be a sympy expression, but got {text!r} ({exc})") from exc
+    if not isinstance(expr, sympy.Expr):
+        raise CatalogueError(f"{where}: template must be a sympy expression, but got {text!r}")
+    return expr
+
+
+def _groups(value: Any, key: str, placeholders: tuple[str, ...], where: str, *, size: int | None = None) -> tuple[tuple[str, ...], ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list) or not all(isinstance(g, list) for g in value):
+        raise CatalogueError(f"{where}: {key} must be a list of placeholder lists, but got {value!r}")
+    out = []
+    for g in value:
+        if len(g) < 2 or (size is not None and len(g) != size):
+            need = f"exactly {size}" if size else "at least 2"
+            raise CatalogueError(f"{where}: each {key} group must name {need} placeholders, but got {g!r}")
+        unknown = [p for p in g if p not in placeholders]
+        if unknown:
+            raise CatalogueError(f"{where}: {key} names {unknown}, which are not placeholders of the template {list(placeholders)}")
+        out.append(tuple(str(p) for p in g))
+    return tuple(out)
+
+
+def _entry(raw: Any, k: int, path: Path) -> Mechanism:
+    label = f"mechanism entry {k}"
+    if isinstance(raw, dict) and isinstance(raw.get("id"), str):
+        label += f" (id {raw['id']!r})"
+    where = f"{path}: {label}"
+    if not isinstance(raw, dict):
+        raise CatalogueError(f"{where}: must be a mapping, but got {type(raw).__name__}")
+    missing = [key for key in _REQUIRED if key not in raw]
+    if missing:
+        raise CatalogueError(f"{where}: must have the keys {list(_REQUIRED)}, but {missing} are missing")
+    unknown = sorted(set(raw) - _ENTRY_KEYS)
+    if unknown:
+        raise CatalogueError(f"{where}: keys must be among {sorted(_ENTRY_KEYS)}, but got unknown {unknown}")
+    if not isinstance(raw["id"], str) or not _ID.match(raw["id"]):
+        raise CatalogueError(f"{where}: id must be letters, digits and underscores starting with a letter, but got {raw['id']!r}")
+    for key in ("name", "template", "explanation"):
+        if not isinstance(raw[key], str) or not raw[key].strip():
+            raise CatalogueError(f"{where}: {key} must be a non-empty string, but got {raw[key]!r}")
+
+    template = _parse_template(raw["template"], where)
+    c = sympy.Symbol(COEFFICIENT)
+    if c not in template.free_symbols:
+        raise CatalogueError(f"{where}: template must contain the coefficient {COEFFICIENT!r}, but got {raw['template']!r}")
+    shape = template.subs(c, 1)
+    if sympy.expand(template - c * shape) != 0:
+        raise CatalogueError(f"{where}: template must be {COEFFICIENT!r} times an expression of the placeholders, but got {raw['template']!r}")
+    placeholders = tuple(sorted(s.name for s in shape.free_symbols))
+
+    units = raw.get("units") or {}
+    if not isinstance(units, dict) or not all(isinstance(v, str) for v in units.values()):
+        raise CatalogueError(f"{where}: units must map placeholders to unit strings, but got {units!r}")
+    bad = [p for p in units if p not in placeholders]
+    if bad:
+        raise CatalogueError(f"{where}: units names {bad}, which are not placeholders of the template {list(placeholders)}")
+
+    fields = {f for _, f, _, _ in string.Formatter().parse(raw["explanation"]) if f is not None}
+    bad = sorted(f for f in fields if f not in placeholders)
+    if bad:
+        raise CatalogueError(
+            f"{where}: explanation may only use the placeholders {list(placeholders)} as {{fields}}, but uses {bad}"
+        )
+    return Mechanism(
+        id=raw["id"],
+        name=raw["name"].strip(),
+        template=template,
+        shape=shape,
+        placeholders=placeholders,
+        same_unit=_groups(raw.get("same_unit"), "same_unit", placeholders, where),
+        units={str(p): v.strip() for p, v in units.items()},
+        different_unit=_groups(raw.get("different_unit"), "different_unit", placeholders, where, size=2),
+        explanation=raw["explanation"].strip(),
+        complexity=int(sympy.count_ops(template)),
+        text=" ".join(raw["template"].split()),
+    )
+
+
+def load_catalogue(path: str | Path | None = None) -> list[Mechanism]:
+    """Read and validate a mechanism catalogue (default: the one shipped with physmend).
+
+    Raises:
+        CatalogueError: the file is missing or not YAML, or an entry breaks a rule (the message
+            names the file, the entry's position and id, the rule and the value found).
+    """
+    path = Path(path) if path is not None else DEFAULT_CATALOGUE
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise CatalogueError(f"{path}: cannot read the mechanism catalogue ({exc.strerror or exc})") from exc
+    except yaml.YAMLError as exc:
+        raise CatalogueError(f"{path}: the mechanism catalogue is not valid YAML ({exc})") from exc
+    if not isinstance(data, dict) or not isinstance(data.get("mechanisms"), list) or not data["mechanisms"]:
+        raise CatalogueError(f"{path}: must be a mapping with a non-empty list 'mechanisms', but got {type(data).__name__}")
+    entries = [_entry(raw, k, path) for k, raw in enumerate(data["mechanisms"])]
+    seen: dict[str, int] = {}
+    for k, m in enumerate(entries):
+        if m.id in seen:
+            raise CatalogueError(f"{path}: mechanism ids must be unique, but entries {seen[m.id]} and {k} are both {m.id!r}")
+        seen[m.id] = k
+    return entries
+
+
+def _samples(expr: sympy.Expr, samples: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    names = sorted(s.name for s in expr.free_symbols)
+    missing = [n for n in names if n not in samples]
+    if missing:
+        raise MechanismError(
+            f"every variable of the formula needs sample values, but none were given for {missing} (given: {sorted(samples)})"
+        )
+    arrays = {n: np.asarray(samples[n], dtype=float).ravel() for n in names}
+    sizes = {n: a.size for n, a in arrays.items() if a.size != 1}
+    if len(set(sizes.values())) > 1:
+        raise MechanismError(f"sample arrays must have one length, but got {sizes}")
+    n = next(iter(sizes.values()), None)
+    if n is None:  # only scalars or a constant formula: take the length of any given sample
+        n = next((np.size(v) for v in samples.values() if np.size(v) > 1), 2)
+    arrays = {k: np.broadcast_to(a, (n,)) if a.size == 1 else a for k, a in arrays.items()}
+    y = evaluate(expr, arrays, n=n)
+    ok = np.isfinite(y)
+    for a in arrays.values():
+        ok &= np.isfinite(a)
+    if ok.sum() < 2:
+        raise MechanismError(f"classification needs at least 2 samples where the formula is finite, but got {int(ok.sum())}")
+    return {k: np.asarray(a[ok], dtype=float) for k, a in arrays.items()}, y[ok]
+
+
+def _formula(m: Mechanism, assignment: Mapping[str, str], coefficient: float) -> str:
+    """The template's text with ``c`` (4 significant digits) and the variable names filled in."""
+    values = {**assignment, COEFFICIENT: f"{coefficient:.4g}"}
+    return abs_bars(re.sub(r"[A-Za-z_]\w*", lambda mt: values.get(mt.group(0), mt.group(0)), m.text))
+
+
+def classify(
+    expr: sympy.Expr,
+    samples: Mapping[str, np.ndarray],
+    units: Mapping[str, str],
+    *,
+    catalogue_path: str | Path | None = None,
+    top: int = 3,
+    tie_tol: float = 1e-3,
+) -> list[MechanismMatch]:
+    """Rank the catalogue's mechanisms by how well each reproduces ``expr`` on ``samples``.
+
+    Args:
+        expr: the formula (sympy, Symbols named like the variables).
+        samples: variable name -> values ``(n,)`` (e.g. trajectories; scalars are broadcast);
+            must cover every variable of ``expr``. Points where anything is non-finite are dropped.
+        units: variable name -> unit string; a variable without a unit is never paired with
+            another (no difference is formed from it) and never counts as kelvin.
+        catalogue_path: a catalogue file; default the shipped ``mechanisms.yaml``.
+        top: how many matches to return.
+        tie_tol: matches whose R² is within ``tie_tol`` of the best count as tied with it and are
+            ordered simplest template first.
+
+    Only the variables of ``expr`` are assigned to placeholders (injectively, obeying the unit
+    rules); each template's ``c`` is fitted by least squares, and assignments that differ only by
+    the sign of ``c`` (e.g. ``a - b`` vs ``b - a``) are reported once, with ``c >= 0``.
+
+    Returns:
+        Up to ``top`` matches, best first.
+
+    Raises:
+        MechanismError: a variable of ``expr`` has no samples, lengths differ, too few finite points.
+        CatalogueError: the catalogue is malformed.
+    """
+    if isinstance(top, bool) or not isinstance(top, int) or top < 1:
+        raise MechanismError(f"top must be an integer >= 1, but got {top!r}")
+    expr = sympy.sympify(expr)
+    catalogue = load_catalogue(catalogue_path)
+    cols, y = _samples(expr, samples)
+    names = sorted(cols)
+    n = y.size
+
+    found: list[tuple[Mechanism, dict[str, str], float, float]] = []
+    for m in catalogue:
+        dummies = [sympy.Symbol(f"_p{i}") for i in range(len(m.placeholders))]
+        f = sympy.lambdify(
+            dummies, m.shape.xreplace({sympy.Symbol(p): d for p, d in zip(m.placeholders, dummies)}), modules="numpy"
+        )
+        for combo in itertools.permutations(names, len(m.placeholders)):
+            assignment = dict(zip(m.placeholders, combo))
+            if not m.admissible(assignment, units):
+                continue
+            with np.errstate(all="ignore"):
+                t = np.array(np.broadcast_to(np.asarray(f(*[cols[v] for v in combo]), dtype=float), (n,)))
+            tt = float(t @ t)
+            if not np.isfinite(t).all() or tt == 0.0:
+                continue
+            c = float(t @ y) / tt
+            _, r2 = mse_r2(y, c * t)
+            found.append((m, assignment, c, r2))
+
+    # One report per mechanism and set of variables (a - b and b - a differ only in the sign of c).
+    found.sort(key=lambda x: (-round(x[3], 9), x[2] < 0, x[0].complexity))
+    unique: dict[tuple[str, frozenset[str]], tuple[Mechanism, dict[str, str], float, float]] = {}
+    for item in found:
+        unique.setdefault((item[0].id, frozenset(item[1].values())), item)
+    ranked = sorted(unique.values(), key=lambda x: -x[3])
+    if ranked:
+        best = ranked[0][3]
+        tied = sorted((x for x in ranked if x[3] >= best - tie_tol), key=lambda x: (x[0].complexity, -x[3]))
+        ranked = tied + [x for x in ranked if x[3] < best - tie_tol]
+    return [
+        MechanismMatch(
+            id=m.id,
+            name=m.name,
+            explanation=m.describe(assignment),
+            variables=assignment,
+            coefficient=c,
+            r2=r2,
+            formula=_formula(m, assignment, c),
+            complexity=m.complexity,
+        )
+        for m, assignment, c, r2 in ranked[:top]
+    ]

@@ -1,0 +1,186 @@
+"""``fit``: one entry point over a string registry of symbolic-regression back ends."""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import sympy
+
+from physmend.symbolic._errors import BackendUnavailable, SymbolicError
+from physmend.symbolic._expr import display, evaluate, mse_r2
+from physmend.symbolic._front import Candidate, ParetoFront, pareto_filter
+
+#: back end name -> module implementing it (imported lazily; the modules import nothing heavy at import time).
+BACKENDS: dict[str, str] = {
+    "operon": "physmend.symbolic._operon",
+    "sindy": "physmend.symbolic._sindy",
+    "pysr": "physmend.symbolic._pysr",
+}
+
+#: fewest points ``fit`` accepts.
+MIN_POINTS = 10
+
+
+def _backend(name: str) -> Any:
+    if name not in BACKENDS:
+        raise SymbolicError(f"symbolic.backend must be one of {sorted(BACKENDS)}, but got {name!r}")
+    return importlib.import_module(BACKENDS[name])
+
+
+def available_backends() -> list[str]:
+    """Names of the back ends that can run on this machine (checked without importing them)."""
+    return [name for name in sorted(BACKENDS) if _backend(name).unavailable_reason() is None]
+
+
+def _check_data(X: Any, y: Any, names: Any, units: Any) -> tuple[np.ndarray, np.ndarray, list[str], dict[str, str]]:
+    try:
+        X = np.asarray(X, dtype=float)
+        y = np.asarray(y, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise SymbolicError(f"X and y must be numeric arrays ({exc})") from exc
+    if X.ndim == 1:
+        X = X[:, None]
+    if X.ndim != 2:
+        raise SymbolicError(f"X must be 2-D with shape (n_points, n_inputs), but got shape {X.shape}")
+    if y.ndim == 2 and y.shape[1] == 1:
+        y = y[:, 0]
+    if y.ndim != 1:
+        raise SymbolicError(f"y must be 1-D with shape (n_points,), but got shape {y.shape}")
+    if X.shape[0] != y.shape[0]:
+        raise SymbolicError(f"X and y must have the same number of points, but got X {X.shape[0]} and y {y.shape[0]}")
+    if isinstance(names, str) or not all(isinstance(s, str) and s for s in names):
+        raise SymbolicError(f"names must be a list of non-empty strings, but got {names!r}")
+    names = list(names)
+    if len(names) != X.shape[1]:
+        raise SymbolicError(f"names must name every column of X ({X.shape[1]}), but got {len(names)} names: {names}")
+    dup = sorted({s for s in names if names.count(s) > 1})
+    if dup:
+        raise SymbolicError(f"names must be unique, but {dup} occur more than once")
+    if X.shape[0] < MIN_POINTS:
+        raise SymbolicError(f"symbolic regression needs at least {MIN_POINTS} points, but got {X.shape[0]}")
+    bad = ~np.isfinite(X)
+    if bad.any():
+        j = int(np.argmax(bad.any(axis=0)))
+        raise SymbolicError(
+            f"X must hold only finite values, but column {names[j]!r} has {int(bad[:, j].sum())} non-finite "
+            f"values (first at row {int(np.argmax(bad[:, j]))})"
+        )
+    if not np.isfinite(y).all():
+        bad_y = ~np.isfinite(y)
+        raise SymbolicError(
+            f"y must hold only finite values, but it has {int(bad_y.sum())} non-finite values "
+            f"(first at row {int(np.argmax(bad_y))})"
+        )
+    units = dict(units or {})
+    wrong = {k: v for k, v in units.items() if not isinstance(k, str) or not isinstance(v, str)}
+    if wrong:
+        raise SymbolicError(f"units must map input names to unit strings, but got {wrong!r}")
+    return X, y, names, {k: v.strip() for k, v in units.items()}
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (np.integer, np.floating)):
+        return value.item()
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    return str(value)
+
+
+def fit(
+    X: np.ndarray,
+    y: np.ndarray,
+    names: list[str],
+    *,
+    backend: str = "operon",
+    target: str = "y",
+    units: dict[str, str] | None = None,
+    options: dict | None = None,
+    seed: int = 0,
+) -> ParetoFront:
+    """Fit formulas ``y ≈ g(X)`` and return their Pareto front (accuracy vs complexity).
+
+    Args:
+        X: inputs, shape ``(n_points, n_inputs)``, finite, in physical units.
+        y: target, shape ``(n_points,)`` (e.g. a network's correction of one state derivative).
+        names: one name per column of ``X``; the formulas' sympy Symbols carry exactly these names.
+        backend: ``"operon"`` (genetic programming, default), ``"sindy"`` (sparse regression over
+            physically motivated terms built from ``units``) or ``"pysr"`` (needs PySR and Julia).
+        target: name of the target, kept on the front for reports.
+        units: input name -> unit string (e.g. ``"K"``); ``"sindy"`` pairs only same-unit inputs.
+        options: back-end settings overriding the defaults (unknown keys are an error); every back
+            end takes ``max_points``: larger inputs are subsampled deterministically (by ``seed``)
+            for the search, while MSE and R² are always computed on all points.
+        seed: random seed of the search and the subsampling.
+
+    Returns:
+        The non-dominated formulas, complexity ascending; choose one with :func:`choose`.
+
+    Raises:
+        SymbolicError: unknown back end or option; bad input (shapes, non-finite values, names,
+            fewer than 10 points); no formula could be evaluated.
+        BackendUnavailable: the back end cannot run here (raised at once, nothing is downloaded).
+    """
+    module = _backend(backend)
+    reason = module.unavailable_reason()
+    if reason is not None:
+        raise BackendUnavailable(reason)
+    X, y, names, units = _check_data(X, y, names, units)
+    settings = module.resolve_options(dict(options or {}))
+    max_points = settings["max_points"]
+    if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < MIN_POINTS:
+        raise SymbolicError(f"symbolic option max_points must be an integer >= {MIN_POINTS}, but got {max_points!r}")
+
+    n = X.shape[0]
+    if n > max_points:
+        rows = np.sort(np.random.default_rng(seed).choice(n, size=max_points, replace=False))
+        Xs, ys = X[rows], y[rows]
+    else:
+        Xs, ys = X, y
+
+    start = time.perf_counter()
+    raw, details = module.search(Xs, ys, names, units=units, options=settings, seed=seed)
+    seconds = time.perf_counter() - start
+
+    columns = {name: X[:, j] for j, name in enumerate(names)}
+    candidates: list[Candidate] = []
+    for expr, complexity, terms, text in raw:
+        expr = sympy.sympify(expr)
+        y_hat = evaluate(expr, columns, n=n)
+        if not np.isfinite(y_hat).all():
+            continue
+        mse, r2 = mse_r2(y, y_hat)
+        candidates.append(Candidate(expr, int(complexity), mse, r2, text or display(expr), dict(terms)))
+    front = pareto_filter(candidates)
+    if not raw:
+        raise SymbolicError(f"back end {backend!r} returned no formula for {target!r}")
+    if not front:
+        raise SymbolicError(
+            f"back end {backend!r} returned {len(raw)} formulas for {target!r}, but none gives finite values on all "
+            f"{n} points"
+        )
+    info = {
+        "settings": _jsonable(settings),
+        "seconds": round(seconds, 3),
+        "n_points_search": int(Xs.shape[0]),
+        "seed": int(seed),
+        "n_raw_candidates": len(raw),
+        **_jsonable(details),
+    }
+    return ParetoFront(backend, target, names, front, units=units, n_points=n, info=info)
+
+
+def resolve(options: dict, defaults: dict[str, Any], *, backend: str, extra: frozenset[str] = frozenset()) -> dict[str, Any]:
+    """``defaults`` updated by ``options``; keys outside ``defaults`` and ``extra`` are an error."""
+    unknown = sorted(set(options) - set(defaults) - set(extra))
+    if unknown:
+        valid = sorted(set(defaults) | set(extra))
+        raise SymbolicError(f"options of back end {backend!r} must be among {valid}, but got unknown {unknown}")
+    return {**defaults, **options}

@@ -8,6 +8,11 @@ from collections.abc import Sequence
 
 STAGES = {
     "diagnose": ("physmend.stages.diagnose", "simulate the model as written against the telemetry: where does it miss?"),
+    "sweep": ("physmend.stages.sweep", "train many UDEs (an Optuna study, one MLflow run per trial); resumable"),
+}
+# stages whose optional run ID is the run they build on rather than "the current selection"
+SOURCE_HELP = {
+    "sweep": "optional source run this sweep builds on (e.g. a diagnose run)",
 }
 
 EPILOG = """\
@@ -32,7 +37,17 @@ def _parser() -> argparse.ArgumentParser:
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         _common(p)
         if name != "diagnose":
-            p.add_argument("run_id", nargs="?", default=None, help="source run ID (default: the current selection)")
+            p.add_argument("run_id", nargs="?", default=None,
+                           help=SOURCE_HELP.get(name, "source run ID (default: the current selection)"))
+    p = sub.add_parser("runs", help="list sweeps, their trials and stage runs; the selection marked",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--sweep", metavar="RUN_ID", default=None, help="only this sweep (its parent run ID)")
+    _common(p)
+    p = sub.add_parser("select", help="choose a trial run (override the automatic choice)",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run_id", help="the trial's run ID (see `physmend runs`)")
+    _common(p)
     p = sub.add_parser("config", help="print the composed configuration", epilog=EPILOG,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     _common(p)
@@ -46,6 +61,12 @@ def _parser() -> argparse.ArgumentParser:
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config-dir", default=None, help="a folder with your own config groups (searched first)")
     p.add_argument("overrides", nargs="*", help="Hydra overrides, key=value")
+
+
+def _split_run_id(args: argparse.Namespace) -> None:
+    """``physmend STAGE RUN_ID k=v``: argparse hands RUN_ID to the overrides; take it back."""
+    if getattr(args, "run_id", "-") is None and args.overrides and "=" not in args.overrides[0]:
+        args.run_id = args.overrides.pop(0)
 
 
 def _compose(args: argparse.Namespace):  # noqa: ANN202
@@ -81,6 +102,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    _split_run_id(args)
     bad = [o for o in args.overrides if "=" not in o]
     if bad:
         parser.error(f"overrides must look like key=value, but got {bad}")
@@ -95,14 +117,30 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             print(to_yaml(cfg))
             return 0
+        if args.command == "runs":
+            from physmend.stages.select import runs
+
+            runs(cfg, as_json=args.json, sweep_run_id=args.sweep)
+            return 0
+        if args.command == "select":
+            from physmend.stages.select import run as select
+
+            select(cfg, args.run_id)
+            return 0
         import importlib
 
         module = importlib.import_module(STAGES[args.command][0])
-        module.run(cfg, getattr(args, "run_id", None))
+        if args.command == "sweep":
+            module.run(cfg, args.run_id, overrides=args.overrides, config_dir=args.config_dir)
+        else:
+            module.run(cfg, getattr(args, "run_id", None))
         return 0
     except USER_ERRORS as exc:
         print(f"physmend {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"physmend {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

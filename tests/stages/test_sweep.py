@@ -1,0 +1,412 @@
+"""physmend sweep: own Optuna loop, MLflow parent/child runs, resume, workers, failures, pruning.
+
+Real MLflow and Optuna sqlite stores in a temporary folder; real (tiny) training on the user's
+oscillator model from conftest.py.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from omegaconf import OmegaConf
+
+from physmend.cli import main
+from physmend.config import ConfigError, compose
+from physmend.stages import sweep as sw
+
+TINY = [
+    "model=oscillator", "data=oscillator", "train.epochs=4", "train.eval_every=2", "train.step=0.1",
+    "train.segment_length=5", "simulate.method=bosh3", "simulate.rtol=1e-3", "simulate.atol=1e-3",
+    "sweep.progress=false",
+]
+STUDY = "oscillator-oscillator-small"
+
+
+@pytest.fixture(autouse=True)
+def _reset_mlflow() -> Any:
+    yield
+    import mlflow
+
+    while mlflow.active_run() is not None:
+        mlflow.end_run()
+    mlflow.set_tracking_uri(None)
+
+
+def sweep_args(project: Path, *extra: str) -> list[str]:
+    return ["sweep", "--config-dir", str(project / "my_conf"), *TINY, *extra]
+
+
+def open_stores(project: Path) -> tuple[Any, Any]:
+    """The MLflow store and the Optuna storage URL of ``project``."""
+    from physmend.tracking import open_store
+
+    store = open_store(OmegaConf.create({"uri": f"sqlite:///{project / 'mlflow.db'}", "experiment": "physmend"}))
+    return store, f"sqlite:///{project / 'optuna.db'}"
+
+
+def load_study(project: Path, name: str = STUDY) -> Any:
+    import optuna
+
+    return optuna.load_study(study_name=name, storage=f"sqlite:///{project / 'optuna.db'}")
+
+
+def children(store: Any, parent: str) -> list[Any]:
+    runs = store.client.search_runs([store.experiment_id], f"tags.`mlflow.parentRunId` = '{parent}'")
+    return sorted(runs, key=lambda r: int(r.data.tags["physmend.trial_number"]))
+
+
+def sweep_parents(store: Any) -> list[Any]:
+    return store.client.search_runs([store.experiment_id], "tags.`physmend.stage` = 'sweep'")
+
+
+def write_space(project: Path, text: str, name: str = "space.yaml") -> Path:
+    path = project / name
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+# -- search spaces -----------------------------------------------------------------------------
+def test_every_shipped_space_loads_and_every_choice_composes() -> None:
+    names = sw.available_spaces()
+    assert {"default", "small"} <= set(names)
+    for name in names:
+        space = sw.load_space(name)
+        assert space.description and space.params
+        for key, param in space.params.items():
+            for value in param.examples():
+                cfg = compose(sw.trial_overrides({key: value}))
+                assert OmegaConf.select(cfg, key) == value, (name, key, value)
+        for first in space.first_trials:
+            cfg = compose(sw.trial_overrides(first))
+            assert all(OmegaConf.select(cfg, k) == v for k, v in first.items())
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"train.lr": {"log_uniform": [0.1, 0.01]}}, "params.train.lr.log_uniform needs 0 < low <= high, but got [0.1, 0.01]"),
+        ({"train.lr": {"log_uniform": [0.0, 0.01]}}, "params.train.lr.log_uniform needs 0 < low <= high, but got [0.0, 0.01]"),
+        ({"train.lr": {"uniform": [3, 1]}}, "params.train.lr.uniform needs low <= high, but got [3, 1]"),
+        ({"ude.width": {"int": [4.5, 8]}}, "params.ude.width.int needs integers low <= high, but got [4.5, 8]"),
+        ({"ude.width": {"int": [4, 8], "step": 0}}, "params.ude.width.int: step must be an integer >= 1, but got 0"),
+        ({"ude.width": {"choice": []}}, "params.ude.width.choice needs a non-empty list of values, but got []"),
+        ({"ude.width": {"choice": [4, 4]}}, "params.ude.width.choice values must be distinct, but [4] repeat"),
+        ({"ude.width": {"choice": [[4, 4]]}}, "values must be numbers, strings, booleans or null, but got [4, 4]"),
+        ({"ude.width": {"normal": [1, 2]}}, "params.ude.width needs exactly one of choice, uniform, log_uniform, int, but got keys ['normal']"),
+        ({"ude.width": {"choice": [4], "step": 2}}, "params.ude.width: unknown keys ['step'] for choice"),
+        ({"ude.width": 4}, "params.ude.width must be a mapping like {choice: [...]}, but got 4"),
+        ({"+ude.width": {"choice": [4]}}, "a parameter must be a config key like 'train.lr', but got '+ude.width'"),
+    ],
+)
+def test_bad_search_spaces_name_file_and_key(params: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        sw.parse_space({"params": params}, name="mine", label="sweeps/mine.yaml")
+    assert str(err.value).startswith("sweeps/mine.yaml: ")
+    assert message in str(err.value)
+
+
+def test_bad_space_files_and_first_trials(tmp_path: Path) -> None:
+    path = write_space(tmp_path, "params:\n  ude.width: {choice: [4, 8]}\nfirst_trials:\n  - {ude.width: 16}\n")
+    with pytest.raises(ConfigError, match=r"first_trials\[0\]: ude.width=16 lies outside params.ude.width"):
+        sw.load_space(str(path))
+    path.write_text("params: [1, 2\n")
+    with pytest.raises(ConfigError, match="space.yaml: not a valid YAML file"):
+        sw.load_space(str(path))
+    with pytest.raises(ConfigError, match=r"must name a search space shipped with physmend \(default, small"):
+        sw.load_space("no_such_space")
+    assert sw.hydra_value("tanh") == "tanh" and sw.hydra_value("null") == "'null'" and sw.hydra_value(1e-6) == "1e-06"
+
+
+def test_a_bad_space_or_key_is_an_error_before_anything_is_written(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
+    monkeypatch.chdir(user_project)
+    bad = write_space(user_project, "params:\n  train.lr: {log_uniform: [0.1, 0.01]}\n")
+    assert main(sweep_args(user_project, f"sweep.space={bad}")) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}: params.train.lr.log_uniform needs 0 < low <= high, but got [0.1, 0.01]" in err
+    typo = write_space(user_project, "params:\n  ude.widht: {choice: [4, 8]}\n", "typo.yaml")
+    assert main(sweep_args(user_project, f"sweep.space={typo}")) == 2
+    err = capsys.readouterr().err
+    assert "params.ude.widht = 4 does not compose" in err and "ude.widht" in err
+    assert main(sweep_args(user_project, "sweep.space=small", "ude.width=4")) == 2
+    assert "ude.width: set on the command line and searched by sweeps/small.yaml" in capsys.readouterr().err
+    assert main(sweep_args(user_project, "sweep.sampler=grid")) == 2
+    assert "sweep.sampler must be one of ['tpe', 'random'], but got 'grid'" in capsys.readouterr().err
+    assert not (user_project / "mlflow.db").exists() and not (user_project / "optuna.db").exists()
+
+
+# -- a sweep, resumed ----------------------------------------------------------------------------
+def test_sweep_resume_structure_selection_and_reload(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
+    from physmend.tracking import current_selection, load_trial
+    from physmend.ude import evaluate
+
+    monkeypatch.chdir(user_project)
+    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=2")) == 0
+    first_out = capsys.readouterr().out
+    store, _ = open_stores(user_project)
+    (parent,) = sweep_parents(store)
+    parent_id = parent.info.run_id
+    assert parent_id in first_out and "physmend select RUN_ID" in first_out and "physmend runs" in first_out
+
+    # same command, more trials: same study, same parent, only the missing trial runs
+    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=3")) == 0
+    out = capsys.readouterr().out
+    study = load_study(user_project)
+    trials = study.get_trials()
+    assert [t.number for t in trials] == [0, 1, 2]
+    assert all(t.state.name == "COMPLETE" for t in trials)
+    assert [p.info.run_id for p in sweep_parents(store)] == [parent_id]
+    assert study.user_attrs[sw.PARENT_ATTR] == parent_id
+    kids = children(store, parent_id)
+    assert [k.info.run_name for k in kids] == ["trial-0000", "trial-0001", "trial-0002"]
+    assert [t.user_attrs[sw.RUN_ID_ATTR] for t in trials] == [k.info.run_id for k in kids]
+
+    # tags and contents of parent and children
+    parent = store.client.get_run(parent_id)
+    tags = parent.data.tags
+    assert parent.info.status == "FINISHED"
+    assert tags["physmend.stage"] == "sweep" and tags["physmend.study"] == STUDY and tags["physmend.space"] == "small"
+    assert tags["physmend.source_run_id"] == "" and tags["physmend.data"] == "oscillator"
+    assert parent.data.metrics["trials.complete"] == 3
+    for trial, kid in zip(trials, kids):
+        kt = kid.data.tags
+        assert kid.info.status == "FINISHED"
+        assert kt["physmend.stage"] == "trial" and kt["physmend.study"] == STUDY
+        assert kt["physmend.trial_number"] == str(trial.number) and kt["mlflow.parentRunId"] == parent_id
+        assert kt["physmend.trial_state"] == "COMPLETE"
+        assert kid.data.params == {k: str(v) for k, v in trial.params.items()}
+        assert kid.data.metrics["val.rmse"] == pytest.approx(trial.value, rel=1e-12)
+        history = store.client.get_metric_history(kid.info.run_id, "val.rmse")
+        assert [m.step for m in history] == [2, 4, 5]  # per epoch, then the final (best) value
+        files = {f.path for f in store.client.list_artifacts(kid.info.run_id)}
+        assert {"config.yaml", "model", "plots", "history.json"} <= files
+        assert {f.path for f in store.client.list_artifacts(kid.info.run_id, "model")} == {"model/hybrid.json", "model/weights.pt"}
+        cfg = OmegaConf.load(store.client.download_artifacts(kid.info.run_id, "config.yaml", str(user_project)))
+        assert all(OmegaConf.select(cfg, k) == v for k, v in trial.params.items())  # a real composed trial config
+        assert cfg.train.epochs == 4
+
+    # the selection is the best trial by val.rmse
+    best = min(trials, key=lambda t: t.value)
+    best_run = best.user_attrs[sw.RUN_ID_ATTR]
+    assert tags["physmend.best_run_id"] == best_run == tags["physmend.selected_run_id"]
+    assert tags["physmend.selected_by"] == "auto" and tags["physmend.selected_at"].endswith("+00:00")
+    assert current_selection(store) == best_run
+    assert f"best: trial {best.number}" in out and best_run in out
+
+    # reload from the run ID reproduces the logged metric
+    loaded = load_trial(store, kids[1].info.run_id)
+    assert loaded.cfg.ude.width == trials[1].params["ude.width"]
+    assert evaluate(loaded.hybrid, loaded.problem, loaded.cfg)["val.rmse"] == pytest.approx(kids[1].data.metrics["val.rmse"], rel=1e-6)
+    cfg, _, hybrid = load_trial(store)  # None: the current selection
+    assert cfg.ude.width == best.params["ude.width"]
+    assert hybrid is not None
+
+    # a third run of the same command has nothing left to do
+    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=3")) == 0
+    assert len(load_study(user_project).get_trials()) == 3 and len(children(store, parent_id)) == 3
+    # resuming with another training configuration would mix incomparable trials
+    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=4", "train.epochs=8")) == 2
+    assert "train.epochs: 4 -> 8" in capsys.readouterr().err
+    assert len(load_study(user_project).get_trials()) == 3
+
+
+# -- failures and pruning ------------------------------------------------------------------------
+FAIL_PRUNE_SPACE = """\
+description: one good trial, one that diverges, one that is pruned
+params:
+  ude.output_scale: {choice: [0.1, 1.0e+300]}
+  train.lr: {choice: [0.01, 1.0e-7]}
+  ude.width: {choice: [4]}
+first_trials:
+  - {ude.output_scale: 0.1, train.lr: 0.01}
+  - {ude.output_scale: 1.0e+300, train.lr: 0.01}
+  - {ude.output_scale: 0.1, train.lr: 1.0e-7}
+"""
+
+
+def test_diverging_trial_fails_pruned_trial_stops_sweep_goes_on(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
+    monkeypatch.chdir(user_project)
+    space = write_space(user_project, FAIL_PRUNE_SPACE)
+    args = sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=3", "sweep.pruner_startup_trials=1",
+                      "sweep.study_name=fp")
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    study = load_study(user_project, "fp")
+    states = [t.state.name for t in study.get_trials()]
+    assert states == ["COMPLETE", "FAIL", "PRUNED"]
+    failed = study.trials[1]
+    assert "TrainingDiverged" in failed.user_attrs["fail_reason"] and "non-finite" in failed.user_attrs["fail_reason"]
+    assert "trial 1 failed: TrainingDiverged" in captured.err
+    store, _ = open_stores(user_project)
+    ok, bad, pruned = children(store, study.user_attrs[sw.PARENT_ATTR])
+    assert bad.info.status == "FAILED" and bad.data.tags["physmend.trial_state"] == "FAIL"
+    assert bad.data.tags["physmend.error"].startswith("TrainingDiverged: training loss became non-finite")
+    assert pruned.info.status == "KILLED" and pruned.data.tags["physmend.trial_state"] == "PRUNED"
+    assert [m.step for m in store.client.get_metric_history(pruned.info.run_id, "val.rmse")] == [2]
+    assert study.trials[2].intermediate_values and study.trials[2].intermediate_values[2] > study.trials[0].intermediate_values[2]
+    parent = store.client.get_run(study.user_attrs[sw.PARENT_ATTR])
+    assert parent.data.tags["physmend.selected_run_id"] == ok.info.run_id == study.trials[0].user_attrs[sw.RUN_ID_ATTR]
+    assert parent.info.status == "FINISHED"
+
+
+def test_consecutive_failures_stop_the_sweep(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
+    monkeypatch.chdir(user_project)
+    space = write_space(user_project, "params:\n  ude.output_scale: {choice: [1.0e+300, 1.0e+299]}\n")
+    args = sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=5", "sweep.max_failures_in_a_row=2")
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "2 trials in a row failed (sweep.max_failures_in_a_row = 2)" in err
+    store, _ = open_stores(user_project)
+    (parent,) = sweep_parents(store)
+    assert parent.info.status == "FAILED" and "physmend.selected_run_id" not in parent.data.tags
+
+
+# -- interrupted and stale trials ------------------------------------------------------------------
+def _wait_for(predicate: Any, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _running_with_run(project: Path, name: str = STUDY) -> bool:
+    if not (project / "optuna.db").exists():
+        return False
+    try:
+        trials = load_study(project, name).get_trials()
+    except Exception:  # noqa: BLE001 - not created yet
+        return False
+    return any(t.state.name == "RUNNING" and sw.RUN_ID_ATTR in t.user_attrs for t in trials)
+
+
+SLOW_FIRST_SPACE = """\
+params:
+  train.epochs: {choice: [400, 4]}
+  ude.width: {choice: [4, 5]}
+first_trials:
+  - {train.epochs: 400, ude.width: 4}
+  - {train.epochs: 4, ude.width: 4}
+  - {train.epochs: 4, ude.width: 5}
+"""
+
+
+def test_ctrl_c_fails_the_trial_and_a_rerun_replaces_it(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
+    monkeypatch.chdir(user_project)
+    space = write_space(user_project, SLOW_FIRST_SPACE)
+    args = [a for a in sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=2", "sweep.study_name=slow")
+            if a != "train.epochs=4"]
+    proc = subprocess.Popen([sys.executable, "-m", "physmend.cli", *args], cwd=user_project,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(lambda: proc.poll() is not None or _running_with_run(user_project, "slow"), 120, "a running trial")
+        assert proc.poll() is None, proc.communicate()[1]
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "physmend sweep: interrupted" in err
+    study = load_study(user_project, "slow")
+    t0 = study.trials[0]
+    assert t0.state.name == "FAIL" and t0.user_attrs["fail_reason"] == "interrupted"
+    assert [t.state.name for t in study.trials[1:]] == ["WAITING", "WAITING"]
+    store, _ = open_stores(user_project)
+    parent_id = study.user_attrs[sw.PARENT_ATTR]
+    kid = store.client.get_run(t0.user_attrs[sw.RUN_ID_ATTR])
+    assert kid.info.status == "KILLED" and kid.data.tags["physmend.trial_state"] == "FAIL"
+    assert "KeyboardInterrupt" in kid.data.tags["physmend.error"] or "interrupted" in kid.data.tags["physmend.error"]
+    assert store.client.get_run(parent_id).info.status == "KILLED"
+
+    # the same command resumes: the interrupted trial reached no verdict, so two trials still run
+    assert main(args) == 0
+    trials = load_study(user_project, "slow").get_trials()
+    assert [t.state.name for t in trials] == ["FAIL", "COMPLETE", "COMPLETE"]
+    assert [p.info.run_id for p in sweep_parents(store)] == [parent_id]
+    assert store.client.get_run(parent_id).info.status == "FINISHED"
+    assert len(children(store, parent_id)) == 3
+    capsys.readouterr()
+
+
+def test_stale_trial_of_a_dead_worker_is_failed_and_replaced(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
+    from optuna.trial import TrialState
+
+    monkeypatch.chdir(user_project)
+    # from Python, without the overrides: trial values are patched into the composed config
+    cfg = compose(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=1")[3:], user_config_dir=user_project / "my_conf")
+    parent_id = sw.run(cfg)
+    store, _ = open_stores(user_project)
+    (kid,) = children(store, parent_id)
+    trial_cfg = OmegaConf.load(store.client.download_artifacts(kid.info.run_id, "config.yaml", str(user_project)))
+    assert trial_cfg.ude.width == int(kid.data.params["ude.width"]) and trial_cfg.train.epochs == 4
+    # a worker that died mid-trial leaves a RUNNING trial behind: same host, a PID that no longer exists
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    study = load_study(user_project)
+    orphan = study.ask()
+    orphan.set_user_attr(sw.WORKER_ATTR, {"host": sw._worker()["host"], "pid": dead.pid})
+    orphan.set_user_attr(sw.HEARTBEAT_ATTR, time.time())
+    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=2")) == 0  # the CLI resumes it
+    err = capsys.readouterr().err
+    assert f"trial {orphan.number} was left running by worker" in err and "marked FAIL (interrupted)" in err
+    trials = load_study(user_project).get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.COMPLETE]
+    assert trials[1].user_attrs["fail_reason"] == "interrupted"
+    assert sw.tally(trials).counted == 2
+
+
+def test_is_stale_by_pid_and_by_heartbeat() -> None:
+    import datetime as dt
+
+    from optuna.trial import TrialState, create_trial
+
+    me = {"host": "here", "pid": os.getpid()}
+    now = time.time()
+
+    def running(attrs: dict[str, Any]) -> Any:
+        t = create_trial(state=TrialState.RUNNING, user_attrs=attrs)
+        t.datetime_start = dt.datetime.now()
+        return t
+
+    alive = os.getppid()
+    assert not sw.is_stale(running({"worker": {"host": "here", "pid": alive}, "heartbeat": now}), now=now, stale_after=60, me=me)
+    assert sw.is_stale(running({"worker": {"host": "here", "pid": me["pid"]}, "heartbeat": now}), now=now, stale_after=60, me=me)
+    assert not sw.is_stale(running({"worker": {"host": "there", "pid": 1}, "heartbeat": now - 30}), now=now, stale_after=60, me=me)
+    assert sw.is_stale(running({"worker": {"host": "there", "pid": 1}, "heartbeat": now - 90}), now=now, stale_after=60, me=me)
+    assert not sw.is_stale(running({}), now=now, stale_after=60, me=me)  # just asked: no worker recorded yet
+
+
+# -- several workers -------------------------------------------------------------------------------
+def test_two_worker_processes_share_one_study(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(user_project)
+    cmd = [sys.executable, "-m", "physmend.cli", *sweep_args(user_project, "sweep.space=small", "sweep.n_trials=4", "sweep.pruner=none")]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    procs = [subprocess.Popen(cmd, cwd=user_project, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    results = [p.communicate(timeout=300) for p in procs]
+    for p, (out, err) in zip(procs, results):
+        assert p.returncode == 0, err
+    study = load_study(user_project)
+    trials = study.get_trials()
+    counted = [t for t in trials if t.state.is_finished() and t.user_attrs.get("fail_reason") != "surplus"]
+    assert len(counted) == 4 and all(t.state.name == "COMPLETE" for t in counted)
+    workers = {t.user_attrs[sw.WORKER_ATTR]["pid"] for t in counted}
+    assert workers == {p.pid for p in procs}  # both did work
+    store, _ = open_stores(user_project)
+    (parent,) = sweep_parents(store)
+    kids = children(store, parent.info.run_id)
+    assert sorted(k.info.run_id for k in kids) == sorted(t.user_attrs[sw.RUN_ID_ATTR] for t in counted)
+    assert parent.info.status == "FINISHED"
+    best = min(counted, key=lambda t: t.value)
+    assert parent.data.tags["physmend.selected_run_id"] == best.user_attrs[sw.RUN_ID_ATTR]
+    assert math.isfinite(parent.data.metrics["best.val.rmse"])

@@ -7,12 +7,25 @@ import sys
 from collections.abc import Sequence
 
 STAGES = {
-    "diagnose": ("physmend.stages.diagnose", "simulate the model as written against the telemetry: where does it miss?"),
-    "sweep": ("physmend.stages.sweep", "train many UDEs (an Optuna study, one MLflow run per trial); resumable"),
+    "diagnose": ("physmend.stages.diagnose:run", "simulate the model as written against the telemetry: where does it miss?"),
+    "sweep": ("physmend.stages.sweep:run", "train many UDEs (an Optuna study, one MLflow run per trial); resumable"),
+    "mask": ("physmend.stages.mask:run", "keep only the corrections that matter, retrain"),
+    "sensitivity": ("physmend.stages.sensitivity:run", "which inputs the kept corrections depend on"),
+    "symbolic": ("physmend.stages.symbolic:run", "symbolic regression: the network becomes formulas"),
+    "propose": ("physmend.stages.propose:run", "the corrected model, validated on held-out experiments, with a report"),
+    "accept": ("physmend.stages.decide:accept", "accept a proposal: write its corrections file"),
+    "reject": ("physmend.stages.decide:reject", "reject a proposal (decide.reason='...')"),
+    "discover": ("physmend.stages.discover:run", "all of the above with default choices, end to end"),
 }
-# stages whose optional run ID is the run they build on rather than "the current selection"
+# what each stage's optional run ID means
 SOURCE_HELP = {
     "sweep": "optional source run this sweep builds on (e.g. a diagnose run)",
+    "mask": "trial run ID (default: the current selection)",
+    "sensitivity": "mask run ID (default: the latest mask run)",
+    "symbolic": "sensitivity run ID (default: the latest sensitivity run)",
+    "propose": "symbolic run ID (default: the latest symbolic run)",
+    "accept": "the proposal's run ID",
+    "reject": "the proposal's run ID",
 }
 
 EPILOG = """\
@@ -36,7 +49,7 @@ def _parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=help_text, description=help_text, epilog=EPILOG,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         _common(p)
-        if name != "diagnose":
+        if name not in ("diagnose", "discover"):
             p.add_argument("run_id", nargs="?", default=None,
                            help=SOURCE_HELP.get(name, "source run ID (default: the current selection)"))
     p = sub.add_parser("runs", help="list sweeps, their trials and stage runs; the selection marked",
@@ -129,11 +142,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 0
         import importlib
 
-        module = importlib.import_module(STAGES[args.command][0])
+        module_name, func = STAGES[args.command][0].split(":")
+        stage = getattr(importlib.import_module(module_name), func)
         if args.command == "sweep":
-            module.run(cfg, args.run_id, overrides=args.overrides, config_dir=args.config_dir)
+            stage(cfg, args.run_id, overrides=args.overrides, config_dir=args.config_dir)
         else:
-            module.run(cfg, getattr(args, "run_id", None))
+            stage(cfg, getattr(args, "run_id", None))
         return 0
     except USER_ERRORS as exc:
         print(f"physmend {args.command}: error: {exc}", file=sys.stderr)

@@ -47,7 +47,7 @@ def accept(cfg: Any, source_run_id: str | None = None) -> str:
     store.client.set_tag(run_id, "physmend.decided_at", utc_now())
     store.client.set_tag(run_id, "physmend.corrections_file", str(path.resolve()))
     print(f"accepted proposal {run_id}: corrections written to {path}")
-    print(f"use the corrected model: physmend diagnose model.corrections={path}")
+    print(f"use the corrected model: physmend diagnose ++model.corrections={path}")
     return run_id
 
 

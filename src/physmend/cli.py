@@ -105,6 +105,9 @@ def _ui(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    import os
+
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # keep stage output readable
     parser = _parser()
     args = parser.parse_args(argv)
     if args.version:

@@ -348,6 +348,27 @@ def _output_spread(obs: torch.Tensor) -> torch.Tensor:
     return torch.stack(cols).clamp_min(1e-9)
 
 
+def _equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
+    """``a_i`` per segment ``(S, k)`` of the corrected equations ``a_i·der(x_i) = …`` and one
+    reference size ``()``: the mean RMS of ``a_i·du_i/dt`` along the model-as-written simulation."""
+    from physmend.modeling.compile import lambdify_torch
+
+    model = problem.model
+    if not spec.corrected:
+        return torch.ones(params_seg.shape[0], 0, dtype=params_seg.dtype), torch.ones((), dtype=params_seg.dtype)
+    psyms = [v.symbol for v in model.parameters]
+    fn = lambdify_torch(psyms, [model.der_coefficient[n] for n in spec.corrected], "der coefficients")
+
+    def coefs(p: torch.Tensor) -> torch.Tensor:
+        vals = fn(*p.unbind(-1))
+        return torch.stack([torch.as_tensor(v, dtype=p.dtype).expand(p.shape[:-1]) for v in vals], -1)
+
+    idx = [model.state_names.index(n) for n in spec.corrected]
+    power = ref.derivs[..., idx] * coefs(ref.batch.params)[None]
+    ref_size = power.pow(2).mean(dim=(0, 1)).sqrt().mean().clamp_min(1e-30)
+    return coefs(params_seg), ref_size
+
+
 def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]], None] | None = None) -> TrainResult:
     """Train a hybrid model configured by ``cfg.ude`` and ``cfg.train`` on ``problem``.
 
@@ -382,6 +403,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     eval_every = max(1, int(tc.eval_every))
     patience = int(tc.patience)
     cont_w = float(tc.continuity_weight)
+    sparsity = float(tc.get("sparsity", 0.0))
+    eq_coef, eq_ref = _equation_scale(problem, spec, params_seg, ref)
     history: list[dict[str, float]] = []
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best = 0
@@ -401,6 +424,11 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         if bool(has_next.any()):
             gap = (traj[-1][has_next] - u0[plan.next_of[has_next]]) / state_scale
             loss = loss + cont_w * gap.pow(2).mean()
+        if sparsity > 0 and spec.corrected:
+            # group lasso in the equations' own units (a_i·correction_i: W for heat balances),
+            # relative to the typical size of those terms: few, direct corrections are cheapest
+            corr = hybrid.corrections(traj, plan.x_half[0::2], p) * eq_coef  # (K+1, S, k)
+            loss = loss + sparsity * (corr.pow(2).mean(dim=(0, 1)).add(1e-30).sqrt() / eq_ref).sum()
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"training loss became non-finite at epoch {epoch} (lr {float(tc.lr):g}); "
                                    "try a smaller train.lr or train.step")

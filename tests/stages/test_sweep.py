@@ -303,8 +303,9 @@ first_trials:
 def test_ctrl_c_fails_the_trial_and_a_rerun_replaces_it(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
     monkeypatch.chdir(user_project)
     space = write_space(user_project, SLOW_FIRST_SPACE)
+    # the first trial must still be running when the signal comes: no early stopping
     args = [a for a in sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=2", "sweep.study_name=slow")
-            if a != "train.epochs=4"]
+            if a != "train.epochs=4"] + ["train.patience=0"]
     proc = subprocess.Popen([sys.executable, "-m", "physmend.cli", *args], cwd=user_project,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

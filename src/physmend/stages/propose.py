@@ -90,6 +90,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     import matplotlib.pyplot as plt
 
     from physmend.explain.mechanisms import classify
+    from physmend.explain.plots import fit_figure
     from physmend.explain.residuals import noise_floor
     from physmend.modeling import read_corrections
     from physmend.modeling.expressions import parse_expression
@@ -192,18 +193,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         if bool(cfg.propose.plots):
             t = batch.t.numpy() / 3600
             for b, e in enumerate(before.experiments):
-                fig, axes = plt.subplots(len(outs), 1, figsize=(10, 2.6 * len(outs)), squeeze=False)
-                for j, out in enumerate(outs):
-                    ax = axes[j, 0]
-                    m = torch.isfinite(batch.obs[:, b, j]).numpy()
-                    ax.plot(t[m], batch.obs[m, b, j].numpy(), ".", ms=2, color="0.5", label="measured")
-                    ax.plot(t, traj0.outputs[:, b, j].numpy(), "--", color="C3", lw=1, label="model as written")
-                    ax.plot(t, traj1.outputs[:, b, j].numpy(), "-", color="C2", lw=1.2, label="corrected model")
-                    ax.set_ylabel(f"{out} [{before.model.units.get(out, '')}]")
-                    ax.legend(fontsize=7)
-                axes[-1, 0].set_xlabel("time [h]")
-                fig.suptitle(f"experiment {e.id} ({e.role})")
-                fig.tight_layout()
+                curves = [("model as written", traj0.outputs[:, b].numpy(), {"ls": "--", "color": "C3", "lw": 1}),
+                          ("corrected model", traj1.outputs[:, b].numpy(), {"color": "C2", "lw": 1.2})]
+                fig = fit_figure(t, batch.obs[:, b].numpy(), curves, outs, before.model.units,
+                                 f"experiment {e.id} ({e.role})")
                 run_.log_figure(fig, f"plots/fit_{e.id}.png")
                 plt.close(fig)
         run_id = run_.run_id

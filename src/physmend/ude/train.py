@@ -475,29 +475,16 @@ def artifacts_of(hybrid: HybridModel, metrics: dict[str, float]) -> dict[str, st
 
 
 def fit_figures(problem: Problem, batch: Batch, y: torch.Tensor, ref: Reference) -> dict[str, Any]:
-    import matplotlib
+    """Measured vs model-as-written vs hybrid outputs, one figure per experiment."""
+    from physmend.explain.plots import fit_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    figs: dict[str, Any] = {}
     t = batch.t.numpy() / 3600
-    y_ref = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])
-    outs = problem.model.output_names
+    y_ref = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None]).numpy()
+    figs: dict[str, Any] = {}
     for b, e in enumerate(problem.experiments):
-        fig, axes = plt.subplots(len(outs), 1, figsize=(10, 2.6 * len(outs)), squeeze=False)
-        for j, out in enumerate(outs):
-            ax = axes[j, 0]
-            m = torch.isfinite(batch.obs[:, b, j]).numpy()
-            ax.plot(t[m], batch.obs[m, b, j].numpy(), ".", ms=2, color="0.5", label="measured")
-            ax.plot(t, y_ref[:, b, j].numpy(), "--", color="C3", lw=1, label="model as written")
-            ax.plot(t, y[:, b, j].numpy(), "-", color="C0", lw=1.2, label="hybrid (UDE)")
-            if e.split_time is not None:
-                ax.axvline(float(e.split_time) / 3600, color="k", lw=0.6, ls=":")
-            ax.set_ylabel(f"{out} [{problem.model.units.get(out, '')}]")
-            ax.legend(fontsize=7)
-        axes[-1, 0].set_xlabel("time [h]")
-        fig.suptitle(f"experiment {e.id} ({e.role})")
-        fig.tight_layout()
-        figs[f"plots/fit_{e.id}.png"] = fig
+        curves = [("model as written", y_ref[:, b], {"ls": "--", "color": "C3", "lw": 1}),
+                  ("hybrid (UDE)", y[:, b].numpy(), {"color": "C0", "lw": 1.2})]
+        split = float(e.split_time) / 3600 if e.split_time is not None else None
+        figs[f"plots/fit_{e.id}.png"] = fit_figure(t, batch.obs[:, b].numpy(), curves, problem.model.output_names,
+                                                   problem.model.units, f"experiment {e.id} ({e.role})", split)
     return figs

@@ -16,11 +16,17 @@ STAGE = "mask"
 
 
 def choose_k(full: float, by_k: list[tuple[int, float]], tolerance: float) -> int:
-    """The smallest k with ``rmse_k <= (1 + tolerance) * full``; the best k when none qualifies."""
+    """The smallest k with ``rmse_k <= (1 + tolerance) * full``.
+
+    When no k qualifies (the network spread small corrections over many equations, so every
+    masked version loses some fit — the retraining restores it), the smallest k within the same
+    tolerance of the best masked RMSE: more corrections that barely help are not kept.
+    """
     for k, rmse in by_k:
         if rmse <= (1.0 + tolerance) * full:
             return k
-    return min(by_k, key=lambda kr: kr[1])[0]
+    best = min(r for _, r in by_k)
+    return next(k for k, r in by_k if r <= (1.0 + tolerance) * best)
 
 
 def _plot(ranking: list[tuple[str, float]], by_k: list[tuple[int, float]], full: float, k: int) -> Any:

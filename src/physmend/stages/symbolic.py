@@ -69,17 +69,10 @@ def canonical_form(expr: sp.Expr, columns: dict[str, np.ndarray], units: dict[st
 
 def targets(hybrid: Any, problem: Any, traj: Any, kept: list[str]) -> dict[str, np.ndarray]:
     """``a·correction`` per kept state along the training samples: ``(N,)`` each, equation units."""
-    from physmend.modeling.compile import lambdify_torch
+    from physmend.ude.analysis import equation_corrections
 
-    model = problem.model
-    out = {}
-    psyms = [v.symbol for v in model.parameters]
-    for name in kept:
-        col = hybrid.spec.corrected.index(name)
-        coef = lambdify_torch(psyms, [model.der_coefficient[name]], "der coefficient")(*traj.p.unbind(-1))[0]
-        coef = torch.as_tensor(coef, dtype=traj.p.dtype).expand(traj.p.shape[0])
-        out[name] = (coef * traj.corr[:, col]).numpy()
-    return out
+    values = equation_corrections(hybrid, problem, traj, kept)
+    return {name: values[:, i].numpy() for i, name in enumerate(kept)}
 
 
 def refit(cfg: Any, problem_cfg: Any, corrections: list, epochs: int) -> tuple[list, dict[str, float]]:

@@ -96,3 +96,21 @@ def rank_inputs(hybrid: HybridModel, jac: torch.Tensor, keep: list[str] | None =
     order = torch.argsort(score, descending=True).tolist()
     names = hybrid.spec.input_names
     return [(names[i], float(score[i])) for i in order]
+
+
+def equation_corrections(hybrid: HybridModel, problem: Problem, traj: HybridTrajectories, kept: list[str]) -> torch.Tensor:
+    """``a_i · correction_i`` of each kept equation ``a_i·der(x_i) = …`` along the samples: ``(N, k)``.
+
+    In the equation's own units (W for a heat balance), so a term that is the same physical flow
+    in experiments of different size (capacity) is the same function of its inputs.
+    """
+    from physmend.modeling.compile import lambdify_torch
+
+    model = problem.model
+    psyms = [v.symbol for v in model.parameters]
+    cols = []
+    for name in kept:
+        coef = lambdify_torch(psyms, [model.der_coefficient[name]], "der coefficient")(*traj.p.unbind(-1))[0]
+        coef = torch.as_tensor(coef, dtype=traj.p.dtype).expand(traj.p.shape[0])
+        cols.append(coef * traj.corr[:, hybrid.spec.corrected.index(name)])
+    return torch.stack(cols, 1)

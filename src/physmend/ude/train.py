@@ -25,6 +25,7 @@ import torch
 from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch, odeint
 from physmend.ude.hybrid import HybridModel, HybridSpec, UDEConfigError, match_names
+from physmend.ude.warmstart import segment_starts, warm_start
 
 
 class TrainingDiverged(RuntimeError):
@@ -369,10 +370,26 @@ def _equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor
     return coefs(params_seg), ref_size
 
 
+def lr_factor(tc: Any, epochs: int, *, warm: bool) -> Callable[[int], float]:
+    """Learning-rate multiplier per epoch: ``train.schedule`` (cosine | none), after a warm start
+    ramped up linearly over ``train.warmup_epochs`` so the first steps do not undo it."""
+    schedule = str(tc.schedule)
+    if schedule not in ("cosine", "none"):
+        raise UDEConfigError(f"train.schedule must be 'cosine' or 'none', but got {schedule!r}")
+    ramp = max(0, int(tc.get("warmup_epochs", 0))) if warm else 0
+
+    def factor(epoch: int) -> float:
+        f = 0.5 * (1 + math.cos(math.pi * min(epoch, epochs) / max(epochs, 1))) if schedule == "cosine" else 1.0
+        return f * min(1.0, (epoch + 1) / ramp) if ramp else f
+
+    return factor
+
+
 def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]], None] | None = None) -> TrainResult:
     """Train a hybrid model configured by ``cfg.ude`` and ``cfg.train`` on ``problem``.
 
-    ``report(epoch, metrics)`` is called after every evaluation (metrics include ``val.rmse``);
+    ``report(epoch, metrics)`` is called after every evaluation (metrics include ``val.rmse``),
+    and at epoch 0 after a derivative-matching warm start (``train.warm_start``);
     an exception it raises (e.g. a pruning signal) stops training and propagates.
 
     Raises:
@@ -386,6 +403,9 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
     plan = plan_shooting(problem, ref.batch, cfg)
     seg0 = _initial_segments(problem, ref, plan)
+    forced = warm_start(hybrid, problem, ref.batch, cfg)
+    if forced is not None:
+        seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
     fixed_first = ref.batch.u0[plan.exp_index]
     state_scale = ref.states[_train_mask(problem, ref.batch)].std(0).clamp_min(1e-3)
     # segment starts are trained as offsets in units of each state's spread (Adam steps are ~lr)
@@ -398,7 +418,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         groups.append({"params": [hybrid.est_raw], "weight_decay": 0.0})
     opt = torch.optim.AdamW(groups, lr=float(tc.lr))
     epochs = int(tc.epochs)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1)) if str(tc.schedule) == "cosine" else None
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor(tc, epochs, warm=forced is not None))
     sim = _sim_opts(cfg)
     eval_every = max(1, int(tc.eval_every))
     patience = int(tc.patience)
@@ -410,6 +430,25 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     since_best = 0
     has_next = plan.next_of >= 0
     outputs = problem.compiled.outputs
+
+    def checkpoint(epoch: int, loss: float, fit: float) -> bool:
+        """Evaluate whole trajectories, keep the best state; True when patience has run out."""
+        nonlocal best, since_best
+        metrics, _, _ = _evaluate(hybrid, problem, sim)
+        row = {"epoch": float(epoch), "loss": loss, "fit_loss": fit,
+               **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
+        history.append(row)
+        if best is None or metrics["val.rmse"] < best[0]:
+            best = (metrics["val.rmse"], copy.deepcopy(hybrid.state_dict()), metrics)
+            since_best = 0
+        else:
+            since_best += 1
+        if report is not None:
+            report(epoch, row)
+        return patience > 0 and since_best >= patience
+
+    if forced is not None:  # the warm start itself is a candidate (it may already be the best fit)
+        checkpoint(0, float("nan"), float("nan"))
     for epoch in range(1, epochs + 1):
         opt.zero_grad(set_to_none=True)
         p = hybrid.parameters_for(params_seg)
@@ -435,21 +474,9 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         loss.backward()
         torch.nn.utils.clip_grad_norm_(hybrid.parameters(), 10.0)
         opt.step()
-        if sched is not None:
-            sched.step()
-        if epoch % eval_every == 0 or epoch == epochs:
-            metrics, _, _ = _evaluate(hybrid, problem, sim)
-            row = {"epoch": float(epoch), "loss": float(loss.detach()), "fit_loss": float(fit.detach()), **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
-            history.append(row)
-            if best is None or metrics["val.rmse"] < best[0]:
-                best = (metrics["val.rmse"], copy.deepcopy(hybrid.state_dict()), metrics)
-                since_best = 0
-            else:
-                since_best += 1
-            if report is not None:
-                report(epoch, row)
-            if patience > 0 and since_best >= patience:
-                break
+        sched.step()
+        if (epoch % eval_every == 0 or epoch == epochs) and checkpoint(epoch, float(loss.detach()), float(fit.detach())):
+            break
     assert best is not None
     hybrid.load_state_dict(best[1])
     metrics, y, batch = _evaluate(hybrid, problem, sim)

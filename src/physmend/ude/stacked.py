@@ -1,0 +1,689 @@
+"""Several hybrid models (a group of sweep trials) trained together in one batched solve.
+
+On small ODEs, per-operation dispatch, not arithmetic, dominates an epoch: a stack of ``M``
+same-shaped networks costs about as much as one. :func:`train_stack` trains ``M`` configurations
+as one multiple-shooting solve over ``M·S`` rows (``S`` segments per model) and evaluates the
+still-active models in one whole-trajectory solve over ``M·B`` rows (``B`` experiments), yet every
+model remains exactly its own trial, as :func:`physmend.ude.train.train` would run it:
+
+* its own architecture ``(width, depth, activation)``: networks are padded to the largest width
+  and depth of the stack; padded units have zero weights that never move (their gradients are
+  masked, so neither AdamW nor weight decay touches them), a shallower network skips the extra
+  hidden layers (``h ← h``), and each model's rows pass through its own activation;
+* its own initialisation (seed) and warm start, built on its own :class:`HybridModel` exactly as
+  ``train()`` builds it, then copied into the padded tensors;
+* its own AdamW (learning rate, weight decay, cosine schedule), gradient clipping (norm 10 per
+  model), trainable segment starts and jointly estimated parameters;
+* its own evaluations, early stopping, best checkpoint and report callback; a model that stops
+  (patience, divergence, an exception raised by ``report``) leaves the stack, the others go on;
+* its own :class:`TrainResult` at the end, with an ordinary :class:`HybridModel` of its own
+  architecture (artifacts and reloading are unchanged).
+
+What cannot be identical: batched matrix products (``baddbmm``) and reductions over padded
+tensors round differently from ``nn.Linear`` on one model (differences ~1e-15 relative per step),
+and the adaptive whole-trajectory solver picks one step size for all rows of a batched
+evaluation, so checkpoint metrics agree with a solo evaluation to the solver tolerance. The final
+metrics of each model come from its own solo evaluation, exactly as ``train()`` computes them.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+
+from physmend.problem import Problem
+from physmend.simulate import Batch, SimulationError, make_batch
+from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec, UDEConfigError
+from physmend.ude.train import (
+    Reference,
+    Shooting,
+    TrainingDiverged,
+    TrainResult,
+    _equation_scale,
+    _evaluate,
+    _initial_segments,
+    _output_spread,
+    _pooled,
+    _sim_opts,
+    _train_mask,
+    _val_mask,
+    artifacts_of,
+    build_spec,
+    fit_figures,
+    plan_shooting,
+    reference,
+    rk4_segments,
+    simulate_with,
+)
+from physmend.ude.warmstart import Forced, segment_starts, warm_start
+
+__all__ = ["SHARED_KEYS", "stack_key", "train_stack"]
+
+#: Settings every model of one stack must share: they shape the common solve (or the problem).
+SHARED_KEYS: tuple[str, ...] = (
+    "model",
+    "data",
+    "simulate",
+    "train.step",
+    "train.segment_length",
+    "train.epochs",
+    "train.schedule",
+    "train.eval_every",
+    "train.patience",
+    "train.continuity_weight",
+    "train.estimate_parameters",
+    "ude.corrected",
+    "ude.inputs",
+)
+_LINEAR_KEY = "ude.depth == 0"  # a linear correction (no hidden layer) cannot be padded into an MLP
+
+Report = Callable[[int, int, dict[str, float]], None]
+
+
+def _plain(value: Any) -> Any:
+    """A hashable, comparable form of a config value (containers as canonical JSON)."""
+    if isinstance(value, DictConfig) or OmegaConf.is_list(value):
+        return json.dumps(OmegaConf.to_container(value, resolve=True), sort_keys=True)
+    if isinstance(value, (dict, list, tuple)):
+        return json.dumps(value, sort_keys=True)
+    return value
+
+
+def stack_key(cfg: DictConfig) -> tuple[tuple[str, Any], ...]:
+    """The settings that must agree for configurations to train in one stack, as ``(key, value)`` pairs.
+
+    Trials whose keys are equal can be passed together to :func:`train_stack`; they may differ in
+    ``seed``, ``ude.width``, ``ude.depth`` (all ≥ 1, or all 0), ``ude.activation``,
+    ``ude.output_scale``, ``train.lr``, ``train.weight_decay``, ``train.sparsity`` and the warm-start settings.
+    """
+    pairs = [(key, _plain(OmegaConf.select(cfg, key, default=None))) for key in SHARED_KEYS]
+    pairs.append((_LINEAR_KEY, int(cfg.ude.depth) == 0))
+    return tuple(pairs)
+
+
+def _check_shared(cfgs: Sequence[DictConfig]) -> None:
+    first = dict(stack_key(cfgs[0]))
+    for i, cfg in enumerate(cfgs[1:], 1):
+        for key, value in stack_key(cfg):
+            if value != first[key]:
+                raise UDEConfigError(
+                    f"train_stack: every model of a stack must have the same `{key}` (it shapes the shared solve), "
+                    f"but model 0 has {first[key]!r} and model {i} has {value!r}; group trials by stack_key()"
+                )
+
+
+# -- the padded networks ----------------------------------------------------------------------------
+def _linears(hybrid: HybridModel) -> list[nn.Linear]:
+    return [m for m in hybrid.net if isinstance(m, nn.Linear)]
+
+
+@dataclass
+class _Net:
+    """``M`` MLPs padded to one shape: layer ``l`` maps ``h (M, N, a)`` to ``baddbmm(b, h, W)``.
+
+    Shapes: ``weights[l] (M, a_l, b_l)`` (transposed ``nn.Linear`` weights), ``biases[l] (M, 1, b_l)``;
+    ``use[l] (M, 1, 1)`` False where a model has fewer hidden layers (the layer is skipped) or None;
+    ``acts`` one ``(activation, rows (M, 1, 1) or None)`` per activation present;
+    ``scale (M, 1, k)`` the output scale times the output mask.
+    """
+
+    weights: list[torch.Tensor]
+    biases: list[torch.Tensor]
+    use: list[torch.Tensor | None]
+    acts: list[tuple[nn.Module, torch.Tensor | None]]
+    scale: torch.Tensor
+
+    def activation(self, a: torch.Tensor) -> torch.Tensor:
+        out: torch.Tensor | None = None
+        for act, rows in self.acts:
+            y = act(a)
+            out = y if out is None or rows is None else torch.where(rows, y, out)
+        assert out is not None
+        return out
+
+    def __call__(self, z: torch.Tensor) -> torch.Tensor:
+        """Corrections ``(M, N, k)`` of normalised features ``z (M, N, n_in)``."""
+        h = z
+        last = len(self.weights) - 1
+        for l, (w, b) in enumerate(zip(self.weights, self.biases)):
+            a = torch.baddbmm(b, h, w)
+            if l == last:
+                return a * self.scale
+            a = self.activation(a)
+            use = self.use[l]
+            h = a if use is None else torch.where(use, a, h)
+        raise AssertionError("a network has an output layer")
+
+    def select(self, rows: torch.Tensor) -> _Net:
+        """The networks of stack rows ``rows`` (no gradients)."""
+        return _Net(
+            weights=[w.detach()[rows] for w in self.weights],
+            biases=[b.detach()[rows] for b in self.biases],
+            use=[None if u is None else u[rows] for u in self.use],
+            acts=[(act, None if m is None else m[rows]) for act, m in self.acts],
+            scale=self.scale[rows],
+        )
+
+
+def _pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[_Net, list[torch.Tensor | None]]:
+    """Padded stacked networks copied from ``hybrids``, and boolean masks of each layer's real entries."""
+    m = len(hybrids)
+    specs = [h.spec for h in hybrids]
+    depths = [len(s.widths) for s in specs]
+    if len({d == 0 for d in depths}) > 1:
+        raise UDEConfigError(f"train_stack: ude.depth=0 (a linear correction) cannot share a stack with deeper networks, "
+                             f"but got depths {depths}")
+    depth = max(depths)
+    n_in, n_out = specs[0].n_inputs, len(specs[0].corrected)
+    width = max((w for s in specs for w in s.widths), default=0)
+    dims = [(n_in if l == 0 else width, width) for l in range(depth)] + [(width if depth else n_in, n_out)]
+    weights = [torch.zeros(m, a, b, dtype=dtype) for a, b in dims]
+    biases = [torch.zeros(m, 1, b, dtype=dtype) for _, b in dims]
+    w_mask = [torch.zeros(m, a, b, dtype=torch.bool) for a, b in dims]
+    b_mask = [torch.zeros(m, 1, b, dtype=torch.bool) for _, b in dims]
+    with torch.no_grad():
+        for i, hybrid in enumerate(hybrids):
+            lins = _linears(hybrid)
+            slots = list(range(len(lins) - 1)) + [depth]  # the output layer is always the last one
+            for lin, l in zip(lins, slots):
+                a, b = lin.in_features, lin.out_features
+                weights[l][i, :a, :b] = lin.weight.T
+                biases[l][i, 0, :b] = lin.bias
+                w_mask[l][i, :a, :b] = True
+                b_mask[l][i, 0, :b] = True
+    use: list[torch.Tensor | None] = []
+    for l in range(depth):
+        rows = torch.tensor([d > l for d in depths]).reshape(m, 1, 1)
+        use.append(None if bool(rows.all()) else rows)
+    names = [s.activation for s in specs]
+    present = [a for a in ACTIVATIONS if a in names]
+    acts: list[tuple[nn.Module, torch.Tensor | None]] = [
+        (ACTIVATIONS[a](), None if len(present) == 1 else torch.tensor([n == a for n in names]).reshape(m, 1, 1))
+        for a in present
+    ]
+    scale = torch.stack([h.out_scale * h.out_mask for h in hybrids])[:, None, :].to(dtype)
+    net = _Net(weights, biases, use, acts, scale)
+    masks: list[torch.Tensor | None] = []
+    for mk in [x for pair in zip(w_mask, b_mask) for x in pair]:
+        masks.append(None if bool(mk.all()) else mk)
+    return net, masks
+
+
+def _write_back(net: _Net, row: int, hybrid: HybridModel, est_raw: torch.Tensor | None) -> None:
+    """Copy stack row ``row`` into ``hybrid``'s own (unpadded) layers and estimates."""
+    lins = _linears(hybrid)
+    depth = len(net.weights) - 1
+    slots = list(range(len(lins) - 1)) + [depth]
+    with torch.no_grad():
+        for lin, l in zip(lins, slots):
+            a, b = lin.in_features, lin.out_features
+            lin.weight.copy_(net.weights[l].detach()[row, :a, :b].T)
+            lin.bias.copy_(net.biases[l].detach()[row, 0, :b])
+        if est_raw is not None:
+            hybrid.est_raw.copy_(est_raw.detach()[row])
+
+
+# -- one model's bookkeeping ------------------------------------------------------------------------
+@dataclass
+class _Member:
+    """One trial of the stack: everything that is its own outside the stacked tensors."""
+
+    slot: int  # index into cfgs (and the result list)
+    cfg: DictConfig
+    hybrid: HybridModel
+    forced: Forced | None
+    seg0: torch.Tensor  # (S, n)
+    lrs: list[float]  # learning rate of epochs 1..E (as train()'s scheduler gives them)
+    history: list[dict[str, float]] = field(default_factory=list)
+    best: tuple[float, dict[str, Any], dict[str, float]] | None = None
+    since_best: int = 0
+    best_y: torch.Tensor | None = None  # whole-trajectory outputs (T, B, k) of the best checkpoint
+    outcome: BaseException | None = None  # set when the model stops with an error
+    done: bool = False
+
+
+def _lr_schedule(cfg: DictConfig) -> list[float]:
+    """The learning rate of every epoch, from the same optimiser/scheduler pair train() uses."""
+    tc = cfg.train
+    epochs = int(tc.epochs)
+    dummy = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.AdamW([dummy], lr=float(tc.lr))
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1)) if str(tc.schedule) == "cosine" else None
+    lrs = []
+    for _ in range(epochs):
+        lrs.append(float(opt.param_groups[0]["lr"]))
+        if sched is not None:
+            opt.step()  # no gradient: nothing moves; keeps the scheduler's step-order check quiet
+            sched.step()
+    return lrs
+
+
+def _metrics(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, float]:
+    """Metrics of whole-trajectory outputs ``y (T, B, k)``, computed exactly as ``train._evaluate`` does."""
+    err = y - batch.obs  # (T, B, k), NaN where not measured
+    units = {problem.model.units.get(o, "") for o in problem.model.output_names}
+    if len(units) > 1:
+        scale = torch.nan_to_num(batch.obs[_train_mask(problem, batch)], nan=0.0).std(0).clamp_min(1e-12)
+        scaled = err / scale
+    else:
+        scaled = err
+    tm, vm = _train_mask(problem, batch), _val_mask(problem, batch)
+    metrics = {"val.rmse": _pooled(scaled, vm), "train.rmse": _pooled(scaled, tm)}
+    test = torch.tensor([e.role == "test" for e in problem.experiments])[None, :].expand_as(tm)
+    if bool(test.any()):
+        metrics["test.rmse"] = _pooled(scaled, test)
+    for b, e in enumerate(problem.experiments):
+        for j, out in enumerate(problem.model.output_names):
+            col = err[:, b, j]
+            col = col[torch.isfinite(col)]
+            metrics[f"rmse.{e.id}.{out}"] = float(col.pow(2).mean().sqrt()) if col.numel() else float("nan")
+    if not math.isfinite(metrics["val.rmse"]):
+        raise TrainingDiverged("validation RMSE is not finite (the hybrid trajectory left the finite range)")
+    return metrics
+
+
+# -- the stack -----------------------------------------------------------------------------------------
+class _Stack:
+    """The active models' stacked trainable tensors, their AdamW state, and the batched solves."""
+
+    BETAS = (0.9, 0.999)
+    EPS = 1e-8
+    MAX_NORM = 10.0
+
+    def __init__(self, members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig) -> None:
+        self.members = members
+        self.problem = problem
+        self.ref = ref
+        self.plan = plan
+        self.template = members[0].hybrid  # index lists, normalisation: the same for every model
+        dtype = problem.dtype
+        self.dtype = dtype
+        self.net, masks = _pad_networks([m.hybrid for m in members], dtype)
+        self.spec: HybridSpec = self.template.spec
+        self.est_idx = self.template.est_idx
+        self.seg0 = torch.stack([m.seg0 for m in members])  # (M, S, n)
+        # (tensor, gradient mask, weight decay?, clipped?): the network and the estimates in the order of
+        # hybrid.parameters() (clipped together, as train() clips them), then the segment offsets
+        net_params = [x for pair in zip(self.net.weights, self.net.biases) for x in pair]
+        self.params: list[tuple[torch.Tensor, torch.Tensor | None, bool, bool]] = [(p, mk, True, True) for p, mk in zip(net_params, masks)]
+        if self.est_idx:
+            self.params.append((torch.stack([m.hybrid.est_raw.detach() for m in members]), None, False, True))
+        self.params.append((torch.zeros(len(members), *members[0].seg0.shape, dtype=dtype), None, False, False))
+        tensors = [p.detach().clone().requires_grad_(True) for p, *_ in self.params]
+        self.params = [(t, mk, decay, clip) for t, (_, mk, decay, clip) in zip(tensors, self.params)]
+        self._bind_tensors(tensors)
+        self.exp_avg = [torch.zeros_like(p) for p, *_ in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p) for p, *_ in self.params]
+        self.step_count = 0
+        self.weight_decay = torch.tensor([float(m.cfg.train.weight_decay) for m in members], dtype=dtype)
+        self.sparsity = torch.tensor([float(m.cfg.train.get("sparsity", 0.0)) for m in members], dtype=dtype)
+        self.mean = self.template.mean
+        self.std = self.template.std
+        # shared pieces of the training solve (as in train())
+        tm = _train_mask(problem, ref.batch)
+        self.fixed_first = ref.batch.u0[plan.exp_index]
+        self.state_scale = ref.states[tm].std(0).clamp_min(1e-3)
+        self.out_std = _output_spread(ref.batch.obs[tm])
+        self.params_seg = ref.batch.params[plan.exp_index]
+        self.has_next = plan.next_of >= 0
+        self.cont_w = float(cfg.train.continuity_weight)
+        self.eq_coef, self.eq_ref = (_equation_scale(problem, self.spec, self.params_seg, ref)
+                                     if bool((self.sparsity > 0).any()) and self.spec.corrected else (None, None))
+        self.eval_batch = make_batch(problem.experiments, problem.compiled, dtype)
+        self._rows_changed()
+
+    # -- bookkeeping ----------------------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        return len(self.members)
+
+    def _rows_changed(self) -> None:
+        m = self.size
+        self.plan_rows = dataclasses.replace(self.plan, x_half=self.plan.x_half.repeat(1, m, 1))  # rows model-major
+
+    def keep(self, positions: list[int]) -> None:
+        """Keep only the models at stack positions ``positions`` (the others have stopped)."""
+        if positions == list(range(self.size)):
+            return
+        rows = torch.tensor(positions, dtype=torch.long)
+        tensors = [p.detach()[rows].clone().requires_grad_(True) for p, *_ in self.params]
+        self.params = [(t, None if mk is None else mk[rows], decay, clip)
+                       for t, (_, mk, decay, clip) in zip(tensors, self.params)]
+        self._bind_tensors(tensors)
+        self.net.use = [None if u is None else u[rows] for u in self.net.use]
+        self.net.acts = [(act, None if mk is None else mk[rows]) for act, mk in self.net.acts]
+        self.net.scale = self.net.scale[rows]
+        self.exp_avg = [t[rows].clone() for t in self.exp_avg]
+        self.exp_avg_sq = [t[rows].clone() for t in self.exp_avg_sq]
+        self.seg0 = self.seg0[rows]
+        self.weight_decay = self.weight_decay[rows]
+        self.sparsity = self.sparsity[rows]
+        self.members = [self.members[i] for i in positions]
+        self._rows_changed()
+
+    def _bind_tensors(self, tensors: list[torch.Tensor]) -> None:
+        """Point the network, estimates and segment offsets at ``tensors`` (in the order of ``params``)."""
+        n_net = 2 * len(self.net.weights)
+        self.net.weights = tensors[0:n_net:2]
+        self.net.biases = tensors[1:n_net:2]
+        self.est_raw = tensors[n_net] if self.est_idx else None
+        self.free = tensors[-1]
+
+    # -- the hybrid right-hand side over stacked rows ------------------------------------------------
+    def _parameters_for(self, p: torch.Tensor, est_raw: torch.Tensor | None, m: int) -> torch.Tensor:
+        """``p (R, n_params)`` repeated for ``m`` models ``(m·R, n_params)`` with each model's estimates."""
+        rows = p.shape[0]
+        p = p[None].expand(m, rows, p.shape[-1]).clone()
+        if est_raw is not None:
+            h = self.template
+            values = h.est_lo + (h.est_hi - h.est_lo) * torch.sigmoid(est_raw)  # (m, n_est)
+            p[:, :, self.est_idx] = values[:, None, :].to(p.dtype)
+        return p.reshape(m * rows, -1)
+
+    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own network."""
+        z = (self.template.features(u, x, p) - self.mean) / self.std
+        *lead, rows, n_feat = z.shape
+        r = rows // m
+        if not lead:
+            return net(z.reshape(m, r, n_feat)).reshape(rows, -1)
+        zz = z.reshape(*lead, m, r, n_feat).movedim(-3, 0).reshape(m, -1, n_feat)
+        out = net(zz)
+        return out.reshape(m, *lead, r, -1).movedim(0, -3).reshape(*lead, rows, -1)
+
+    def _rhs(self, net: _Net, m: int, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """``f(u, x) -> du/dt`` over stacked rows, structured as :meth:`HybridModel.rhs`."""
+        physics = self.problem.compiled.bind(p)
+        idx = self.template.corrected_idx
+        n = len(self.problem.compiled.state_names)
+        if not idx:
+            return physics
+        if len(idx) == n and idx == list(range(n)):
+            return lambda u, x: physics(u, x) + self._corrections(net, m, u, x, p)
+        index = torch.tensor(idx, dtype=torch.long)
+
+        def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+            du = physics(u, x)
+            corr = self._corrections(net, m, u, x, p)
+            full = torch.zeros(*corr.shape[:-1], n, dtype=corr.dtype, device=corr.device)
+            return du + full.index_copy(-1, index, corr)
+
+        return f
+
+    # -- one epoch -----------------------------------------------------------------------------------------
+    def losses(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each model's training loss and fit loss ``(M,)``, as train() computes them for one."""
+        m, plan = self.size, self.plan_rows
+        s, n = self.seg0.shape[1:]
+        p = self._parameters_for(self.params_seg, self.est_raw, m)  # (M·S, n_params)
+        u0 = torch.where(self.plan.first[None, :, None], self.fixed_first[None], self.seg0 + self.free * self.state_scale)
+        u0 = u0.reshape(m * s, n)
+        traj = rk4_segments(self._rhs(self.net, m, p), u0, plan)  # (K+1, M·S, n)
+        y_grid = self.problem.compiled.outputs(traj, plan.x_half[0::2], p[None])  # (K+1, M·S, k)
+        y_grid = y_grid.reshape(y_grid.shape[0], m, s, -1).movedim(1, 0)  # (M, K+1, S, k)
+        ya = y_grid[:, plan.obs_k, plan.obs_s, plan.obs_j]
+        yb = y_grid[:, plan.obs_k + 1, plan.obs_s, plan.obs_j]
+        pred = ya + plan.obs_w * (yb - ya)
+        fit = (((pred - plan.obs_y) / self.out_std[plan.obs_j]) ** 2).mean(-1)
+        loss = fit
+        if bool(self.has_next.any()):
+            last = traj[-1].reshape(m, s, n)
+            u0s = u0.reshape(m, s, n)
+            gap = (last[:, self.has_next] - u0s[:, plan.next_of[self.has_next]]) / self.state_scale
+            loss = loss + self.cont_w * gap.pow(2).mean(dim=(1, 2))
+        if self.eq_coef is not None:
+            corr = self._corrections(self.net, m, traj, plan.x_half[0::2], p)  # (K+1, M·S, k)
+            corr = corr.reshape(corr.shape[0], m, s, -1) * self.eq_coef[None, None]
+            term = (corr.pow(2).mean(dim=(0, 2)).add(1e-30).sqrt() / self.eq_ref).sum(-1)
+            loss = loss + torch.where(self.sparsity > 0, self.sparsity * term, torch.zeros_like(term))
+        return loss, fit
+
+    def step(self, loss: torch.Tensor, lr: torch.Tensor, rows: torch.Tensor) -> None:
+        """Backward over models ``rows`` (finite losses), clip each model's gradient, one AdamW step."""
+        for p, *_ in self.params:
+            p.grad = None
+        loss[rows].sum().backward()
+        b1, b2 = self.BETAS
+        self.step_count += 1
+        bc1 = 1 - b1**self.step_count
+        bc2_sqrt = (1 - b2**self.step_count) ** 0.5
+        with torch.no_grad():
+            grads = []
+            for p, mk, _, _ in self.params:
+                g = p.grad if p.grad is not None else torch.zeros_like(p)
+                grads.append(g if mk is None else torch.where(mk, g, torch.zeros_like(g)))
+            # per-model gradient norm over the hybrid's parameters (network, estimates): clip to 10
+            norms = [g.flatten(1).norm(dim=1) for g, (_, _, _, clip) in zip(grads, self.params) if clip]
+            if norms:
+                total = torch.linalg.vector_norm(torch.stack(norms, dim=1), dim=1)
+                coef = (self.MAX_NORM / (total + 1e-6)).clamp(max=1.0)
+                grads = [g * coef.reshape(-1, *[1] * (g.ndim - 1)) if clip else g
+                         for g, (_, _, _, clip) in zip(grads, self.params)]
+            for (p, _, decay, _), g, ea, eas in zip(self.params, grads, self.exp_avg, self.exp_avg_sq):
+                shape = (-1, *[1] * (p.ndim - 1))
+                lr_p = lr.reshape(shape)
+                if decay:
+                    p.mul_(1 - lr_p * self.weight_decay.reshape(shape))
+                ea.lerp_(g, 1 - b1)
+                eas.mul_(b2).addcmul_(g, g, value=1 - b2)
+                denom = (eas.sqrt() / bc2_sqrt).add_(self.EPS)
+                p.add_((-(lr_p / bc1)) * ea / denom)
+
+    # -- evaluation ----------------------------------------------------------------------------------------
+    def evaluate(self, positions: list[int], sim: dict[str, Any]) -> list[tuple[dict[str, float], torch.Tensor] | BaseException]:
+        """Whole-trajectory metrics of the models at ``positions`` in one batched solve (per model on failure)."""
+        m = len(positions)
+        batch = self.eval_batch
+        b = batch.size
+        rows = torch.tensor(positions, dtype=torch.long)
+        rep = torch.arange(b).repeat(m)
+        names = [f"{self.members[i].slot}:{e}" for i in positions for e in batch.ids]
+        batch_m = dataclasses.replace(batch, ids=names, inputs=batch.inputs.select(rep), params=batch.params[rep],
+                                      u0=batch.u0[rep], obs=batch.obs[:, rep], split_time=batch.split_time[rep])
+        net = self.net.select(rows)
+        est = None if self.est_raw is None else self.est_raw.detach()[rows]
+        try:
+            with torch.no_grad():
+                p = self._parameters_for(batch.params, est, m)  # (M·B, n_params)
+                states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
+                y = self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
+        except SimulationError:
+            return [self._evaluate_alone(i, sim) for i in positions]
+        out: list[tuple[dict[str, float], torch.Tensor] | BaseException] = []
+        for j in range(m):
+            y_j = y[:, j * b:(j + 1) * b]
+            try:
+                out.append((_metrics(self.problem, batch, y_j), y_j))
+            except TrainingDiverged as exc:
+                out.append(exc)
+        return out
+
+    def _evaluate_alone(self, position: int, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor] | BaseException:
+        member = self.members[position]
+        self.write_back(position)
+        try:
+            metrics, y, _ = _evaluate(member.hybrid, self.problem, sim)
+        except TrainingDiverged as exc:
+            return exc
+        return metrics, y
+
+    def write_back(self, position: int) -> None:
+        _write_back(self.net, position, self.members[position].hybrid, self.est_raw)
+
+
+# -- training ------------------------------------------------------------------------------------------------
+def _prepare(cfg: DictConfig, problem: Problem, ref: Reference, plan: Shooting, slot: int) -> _Member:
+    """One model exactly as train() starts it: seed, spec, network, warm start, segment starts."""
+    torch.manual_seed(int(cfg.get("seed", 0)))
+    spec = build_spec(cfg, problem, ref)
+    hybrid = HybridModel(problem.compiled, spec, problem.dtype)
+    seg0 = _initial_segments(problem, ref, plan)
+    forced = warm_start(hybrid, problem, ref.batch, cfg)
+    if forced is not None:
+        seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
+    return _Member(slot=slot, cfg=cfg, hybrid=hybrid, forced=forced, seg0=seg0, lrs=_lr_schedule(cfg))
+
+
+def _check_same_shape(members: list[_Member]) -> None:
+    a = members[0].hybrid.spec
+    for mem in members[1:]:
+        s = mem.hybrid.spec
+        same = (s.corrected == a.corrected and s.input_names == a.input_names and s.estimated == a.estimated
+                and s.mean == a.mean and s.std == a.std)
+        if not same:
+            raise UDEConfigError(f"train_stack: model {mem.slot} corrects or reads other variables than model "
+                                 f"{members[0].slot} (ude.corrected / ude.inputs / train.estimate_parameters must agree)")
+
+
+def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report | None = None,
+                final_eval: str = "own") -> list[TrainResult | BaseException]:
+    """Train one hybrid model per configuration, all in one batched solve (see module docstring).
+
+    Args:
+        cfgs: one full configuration per model. They may differ in ``seed``, ``ude.width``,
+            ``ude.depth``, ``ude.activation``, ``ude.output_scale``, ``train.lr``,
+            ``train.weight_decay``, ``train.sparsity`` and the warm-start settings; everything in
+            :data:`SHARED_KEYS` must agree (see :func:`stack_key`).
+        problem: the problem every model is trained on.
+        report: ``report(i, epoch, row)`` after every evaluation of model ``i`` (``row`` as the
+            ``report`` of :func:`physmend.ude.train.train` gets it). An exception it raises stops
+            model ``i`` only and becomes its result.
+        final_eval: ``"own"``: each model's final metrics come from its own solo evaluation, exactly as
+            ``train()`` computes them (a reloaded model reproduces them); costs one solo solve per
+            model. ``"checkpoint"``: the metrics of its best batched evaluation are kept (no extra
+            solve; they agree with a solo evaluation to the solver tolerance).
+
+    Returns:
+        One entry per configuration, in order: the model's :class:`TrainResult` (as
+        :func:`physmend.ude.train.train` would return it), or the exception that stopped it —
+        :class:`TrainingDiverged` when its loss or trajectory became non-finite, the exception
+        raised by ``report``, or an error of its own settings.
+
+    Raises:
+        UDEConfigError: the configurations differ in a shared setting (the message names the key).
+    """
+    if final_eval not in ("own", "checkpoint"):
+        raise UDEConfigError(f"final_eval must be 'own' or 'checkpoint', but got {final_eval!r}")
+    if not cfgs:
+        return []
+    _check_shared(cfgs)
+    cfg0 = cfgs[0]
+    ref = reference(problem, cfg0)
+    plan = plan_shooting(problem, ref.batch, cfg0)
+    results: list[TrainResult | BaseException | None] = [None] * len(cfgs)
+    members: list[_Member] = []
+    for i, cfg in enumerate(cfgs):
+        try:
+            members.append(_prepare(cfg, problem, ref, plan, i))
+        except Exception as exc:  # noqa: BLE001 - train(cfg) would have raised it: this trial's outcome
+            results[i] = exc
+    if members:
+        _check_same_shape(members)
+        finished = _run(members, problem, ref, plan, cfg0, report)
+        for mem in finished:
+            results[mem.slot] = mem.outcome if mem.outcome is not None else _result(mem, problem, ref, _sim_opts(cfg0), final_eval)
+    assert all(r is not None for r in results)
+    return results  # type: ignore[return-value]
+
+
+def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
+         report: Report | None) -> list[_Member]:
+    """The shared epoch loop; returns every member, each with a best checkpoint or an outcome."""
+    tc = cfg.train
+    stack = _Stack(members, problem, ref, plan, cfg)
+    sim = _sim_opts(cfg)
+    epochs = int(tc.epochs)
+    eval_every = max(1, int(tc.eval_every))
+    patience = int(tc.patience)
+
+    def checkpoint(positions: list[int], epoch: int, loss: torch.Tensor | None, fit: torch.Tensor | None) -> None:
+        """Evaluate the models at ``positions``; mark those whose patience ran out or that failed as done."""
+        for pos, outcome in zip(positions, stack.evaluate(positions, sim)):
+            mem = stack.members[pos]
+            if isinstance(outcome, BaseException):
+                mem.outcome, mem.done = outcome, True
+                continue
+            metrics, y = outcome
+            row = {"epoch": float(epoch),
+                   "loss": float("nan") if loss is None else float(loss[pos]),
+                   "fit_loss": float("nan") if fit is None else float(fit[pos]),
+                   **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
+            mem.history.append(row)
+            if mem.best is None or metrics["val.rmse"] < mem.best[0]:
+                stack.write_back(pos)
+                mem.best = (metrics["val.rmse"], copy.deepcopy(mem.hybrid.state_dict()), metrics)
+                mem.best_y = y
+                mem.since_best = 0
+            else:
+                mem.since_best += 1
+            if report is not None:
+                try:
+                    report(mem.slot, epoch, row)
+                except Exception as exc:  # noqa: BLE001 - e.g. a pruning signal: this model stops
+                    mem.outcome, mem.done = exc, True
+                    continue
+            if patience > 0 and mem.since_best >= patience:
+                mem.done = True
+
+    def drop_done() -> None:
+        stack.keep([i for i, mem in enumerate(stack.members) if not mem.done])
+
+    warm = [i for i, mem in enumerate(stack.members) if mem.forced is not None]
+    if warm:  # a warm start itself is a candidate (it may already be the best fit), as in train()
+        checkpoint(warm, 0, None, None)
+        drop_done()
+    for epoch in range(1, epochs + 1):
+        if not stack.members:
+            break
+        loss, fit = stack.losses()
+        ok = torch.isfinite(loss.detach())
+        for pos in torch.nonzero(~ok).flatten().tolist():
+            mem = stack.members[pos]
+            lr0 = float(mem.cfg.train.lr)
+            mem.outcome = TrainingDiverged(f"training loss became non-finite at epoch {epoch} (lr {lr0:g}); "
+                                           "try a smaller train.lr or train.step")
+            mem.done = True
+        if bool(ok.any()):
+            lr = torch.tensor([mem.lrs[epoch - 1] for mem in stack.members], dtype=stack.dtype)
+            stack.step(loss, lr, torch.nonzero(ok).flatten())
+        loss, fit = loss.detach(), fit.detach()
+        if epoch % eval_every == 0 or epoch == epochs:
+            live = [i for i, mem in enumerate(stack.members) if not mem.done]
+            if live:
+                checkpoint(live, epoch, loss, fit)
+        drop_done()
+    return members
+
+
+def _result(mem: _Member, problem: Problem, ref: Reference, sim: dict[str, Any], final_eval: str) -> TrainResult | BaseException:
+    """The model's best checkpoint as train() returns it: its own HybridModel (re-evaluated on its own)."""
+    assert mem.best is not None and mem.best_y is not None
+    hybrid = mem.hybrid
+    hybrid.load_state_dict(mem.best[1])
+    if final_eval == "own":
+        try:
+            metrics, y, batch = _evaluate(hybrid, problem, sim)
+        except TrainingDiverged as exc:
+            return exc
+    else:
+        metrics, y = dict(mem.best[2]), mem.best_y
+        batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    for name, value in hybrid.estimates().items():
+        metrics[f"estimate.{name}"] = value
+    return TrainResult(
+        val_rmse=metrics["val.rmse"],
+        metrics=metrics,
+        history=mem.history,
+        artifacts=artifacts_of(hybrid, metrics),
+        figures=fit_figures(problem, batch, y, ref),
+        hybrid=hybrid,
+    )

@@ -1,0 +1,217 @@
+"""Derivative-matching (collocation) warm start of a hybrid model, where the outputs allow it.
+
+When some outputs are plain states (``y_j = u_i``), their smoothed records give both the state and
+its rate of change. The hidden states are then simulated with the measured ones *forced* to their
+smoothed records (so walls, masses, … follow the real temperatures, positions, …), and the
+mismatch of each measured state's equation is known at every grid point:
+
+    r_i(t) = dŷ_i/dt − f_i(û(t), x(t), p)        [state unit / s]
+
+Fitting the network to ``r`` (and the other corrections to zero) is plain regression — no ODE
+solve, a second or two — and gives multiple shooting a network and segment starts close to a good
+fit. Models whose outputs are not states get no warm start.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+
+from physmend.problem import Problem
+from physmend.simulate import Batch
+from physmend.ude.hybrid import HybridModel
+
+
+@dataclass
+class Forced:
+    """Training experiments on a uniform grid with measured states forced to their smoothed records.
+
+    Shapes: ``G`` grid points (step ``dt`` s from 0), ``E`` training experiments.
+    """
+
+    dt: float
+    exp_index: torch.Tensor  # (E,) batch element of each training experiment
+    states: torch.Tensor  # (G, E, n) û: measured states smoothed, hidden states simulated
+    rates: torch.Tensor  # (G, E, q) dŷ/dt of the measured states
+    inputs: torch.Tensor  # (G, E, m)
+    valid: torch.Tensor  # (G, E) True where a grid point lies inside the training record, near samples
+    measured: list[int]  # the q measured state indices (model order)
+
+
+def measured_states(problem: Problem) -> list[tuple[int, int]]:
+    """``(output index, state index)`` for every output that is a plain state."""
+    names = problem.model.state_names
+    pairs = []
+    for j, out in enumerate(problem.model.output_names):
+        expr = problem.model.outputs[out]
+        if getattr(expr, "is_Symbol", False) and expr.name in names:
+            pairs.append((j, names.index(expr.name)))
+    return pairs
+
+
+def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothing spline (smoothness by generalised cross-validation): value and slope on ``grid``."""
+    from scipy.interpolate import make_smoothing_spline
+
+    spline = make_smoothing_spline(t, y)
+    g = np.clip(grid, t[0], t[-1])
+    return spline(g), spline.derivative()(g) * ((grid >= t[0]) & (grid <= t[-1]))
+
+
+def forced_trajectories(problem: Problem, batch: Batch, hybrid: HybridModel, dt: float) -> Forced | None:
+    """Smooth the measured states and simulate the rest with them forced (fixed-step RK4, step ``dt`` s).
+
+    Returns None when no output is a plain state (nothing to match).
+    """
+    pairs = measured_states(problem)
+    train = [b for b, e in enumerate(problem.experiments) if e.role == "train"]
+    if not pairs or not train:
+        return None
+    ends = [float(problem.experiments[b].split_time if problem.experiments[b].split_time is not None
+                  else problem.experiments[b].obs_time[-1]) for b in train]
+    steps = int(math.ceil(max(ends) / dt - 1e-9))
+    fine = np.arange(2 * steps + 1) * (dt / 2)  # grid and half steps
+    q = len(pairs)
+    y_hat = np.zeros((fine.size, len(train), q))
+    dy_hat = np.zeros_like(y_hat)
+    valid = np.zeros((fine.size, len(train)), dtype=bool)
+    for e, b in enumerate(train):
+        exp = problem.experiments[b]
+        t = np.asarray(exp.obs_time, dtype=float)
+        near = np.zeros(fine.size, dtype=bool)
+        for c, (j, _) in enumerate(pairs):
+            y = np.asarray(exp.obs[:, j], dtype=float)
+            ok = np.isfinite(y) & (t < ends[e])
+            if ok.sum() < 10:
+                return None
+            y_hat[:, e, c], dy_hat[:, e, c] = _smooth(t[ok], y[ok], fine)
+            spacing = float(np.median(np.diff(t[ok])))
+            idx = np.clip(np.searchsorted(t[ok], fine), 1, ok.sum() - 1)
+            gap = np.minimum(np.abs(fine - t[ok][idx - 1]), np.abs(t[ok][idx] - fine))
+            near_c = (gap <= 2 * spacing) & (fine >= t[ok][0]) & (fine <= ends[e])
+            near = near_c if c == 0 else near & near_c
+        valid[:, e] = near
+    dtype = batch.t.dtype
+    yh = torch.as_tensor(y_hat, dtype=dtype)
+    dyh = torch.as_tensor(dy_hat, dtype=dtype)
+    sel = torch.tensor(train)
+    x_fine = batch.inputs.select(sel).at(torch.as_tensor(fine, dtype=dtype))  # (2G-1, E, m)
+    idx = torch.tensor([i for _, i in pairs])
+    with torch.no_grad():
+        p = hybrid.parameters_for(batch.params[sel])
+        physics = hybrid.compiled.bind(p)
+
+        def f(u: torch.Tensor, k: int) -> torch.Tensor:
+            u = u.index_copy(-1, idx, yh[k])
+            return physics(u, x_fine[k]).index_copy(-1, idx, dyh[k])
+
+        u = batch.u0[sel].index_copy(-1, idx, yh[0])
+        out = [u]
+        for s in range(steps):
+            k = 2 * s
+            k1 = f(u, k)
+            k2 = f(u + 0.5 * dt * k1, k + 1)
+            k3 = f(u + 0.5 * dt * k2, k + 1)
+            k4 = f(u + dt * k3, k + 2)
+            u = (u + (dt / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)).index_copy(-1, idx, yh[k + 2])
+            out.append(u)
+        states = torch.stack(out)
+    if not bool(torch.isfinite(states).all()):
+        return None
+    return Forced(dt=dt, exp_index=sel, states=states, rates=dyh[0::2], inputs=x_fine[0::2],
+                  valid=torch.as_tensor(valid[0::2]), measured=idx.tolist())
+
+
+def fit_network(hybrid: HybridModel, problem: Problem, batch: Batch, forced: Forced, *, iterations: int = 400,
+                lr: float = 0.01, input_sparsity: float = 0.0, window: int = 1) -> dict[str, float]:
+    """Fit the network (and jointly estimated parameters) to the measured states' equation mismatch.
+
+    Corrections of hidden equations are pulled towards zero (in units of their state's typical
+    derivative). Returns ``{"warm.loss": …, "warm.r2": …}`` (R² of the measured mismatch).
+    """
+    corrected = hybrid.corrected_idx
+    meas_cols = [corrected.index(i) for i in forced.measured if i in corrected]
+    meas_idx = [i for i in forced.measured if i in corrected]
+    if not meas_cols:
+        return {}
+    hidden_cols = [c for c in range(len(corrected)) if c not in meas_cols]
+    w = max(1, int(window))
+
+    def box(a: torch.Tensor) -> torch.Tensor:
+        """Mean over windows of ``w`` grid points along time (the weak form of the rate match)."""
+        if w == 1:
+            return a
+        c = torch.cat([torch.zeros_like(a[:1]), a.cumsum(0)])
+        return (c[w:] - c[:-w]) / w
+
+    v_point = forced.valid.to(forced.states.dtype)[..., None]  # (G, E, 1)
+    v = (box(v_point) > 1 - 1e-9).to(v_point.dtype)
+    count = v.sum().clamp_min(1.0)
+    u, x = forced.states, forced.inputs  # (G, E, n), (G, E, m)
+    rate = forced.rates[..., [forced.measured.index(i) for i in meas_idx]]
+    p_exp = batch.params[forced.exp_index]  # (E, n_params): physics bound once per experiment
+    typical = hybrid.out_scale.clamp_min(1e-30)  # hidden corrections relative to their initial size
+
+    def mismatch(p: torch.Tensor) -> torch.Tensor:
+        return rate - hybrid.compiled.bind(p)(u, x)[..., meas_idx]
+
+    with torch.no_grad():
+        r0 = box(mismatch(hybrid.parameters_for(p_exp)))
+        r_mean = (r0 * v).sum((0, 1)) / count
+        r_scale = (((r0 - r_mean) ** 2 * v).sum((0, 1)) / count).sqrt().clamp_min(1e-12)
+    params = list(hybrid.net.parameters()) + ([hybrid.est_raw] if hybrid.est_idx else [])
+    opt = torch.optim.Adam(params, lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=iterations)
+    loss = torch.zeros(())
+    for _ in range(iterations):
+        opt.zero_grad(set_to_none=True)
+        p = hybrid.parameters_for(p_exp)
+        corr = hybrid.corrections(u, x, p)
+        loss = (((box(corr[..., meas_cols] - mismatch(p))) / r_scale) ** 2 * v).sum() / (count * len(meas_cols))
+        if hidden_cols:
+            hidden = (corr[..., hidden_cols] / typical[hidden_cols]) ** 2 * v_point
+            loss = loss + hidden.sum() / (v_point.sum().clamp_min(1.0) * len(hidden_cols))
+        if input_sparsity > 0:  # group lasso on each input's first-layer weights: few inputs
+            loss = loss + input_sparsity * hybrid.net[0].weight.pow(2).sum(0).add(1e-12).sqrt().sum()
+        loss.backward()
+        opt.step()
+        sched.step()
+    with torch.no_grad():
+        p = hybrid.parameters_for(p_exp)
+        r = box(mismatch(p))
+        res = (r - box(hybrid.corrections(u, x, p)[..., meas_cols])) * v
+        r2 = 1.0 - float(res.pow(2).sum() / (((r - r_mean) * v) ** 2).sum().clamp_min(1e-30))
+    return {"warm.loss": float(loss.detach()), "warm.r2": r2}
+
+
+def segment_starts(forced: Forced, exp_index: torch.Tensor, starts: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:
+    """Multiple-shooting segment starts ``(S, n)`` from the forced trajectories (``fallback`` elsewhere)."""
+    out = fallback.clone()
+    where = {int(b): e for e, b in enumerate(forced.exp_index.tolist())}
+    for s in range(starts.shape[0]):
+        e = where.get(int(exp_index[s]))
+        k = int(round(float(starts[s]) / forced.dt))
+        if e is not None and k < forced.states.shape[0]:
+            out[s] = forced.states[k, e]
+    return out
+
+
+def warm_start(hybrid: HybridModel, problem: Problem, batch: Batch, cfg: Any) -> Forced | None:
+    """Collocation warm start per ``cfg.train.warm_start`` (``auto`` | ``none``); the forced trajectories or None."""
+    mode = str(cfg.train.get("warm_start", "auto"))
+    if mode == "none":
+        return None
+    if mode != "auto":
+        from physmend.ude.hybrid import UDEConfigError
+
+        raise UDEConfigError(f"train.warm_start must be 'auto' or 'none', but got {mode!r}")
+    forced = forced_trajectories(problem, batch, hybrid, float(cfg.train.step))
+    if forced is None:
+        return None
+    window = max(1, int(round(float(cfg.train.get("warm_window", 0.0)) / float(cfg.train.step))))
+    fit_network(hybrid, problem, batch, forced, iterations=int(cfg.train.get("warm_iterations", 400)), window=window)
+    return forced

@@ -51,3 +51,26 @@ def test_jacobian_matches_finite_differences(hybrid_and_traj) -> None:  # noqa: 
         torch.testing.assert_close(jac[:, :, j], fd, rtol=1e-5, atol=1e-10)
     ranked = rank_inputs(hybrid, jac, ["cart.v"])
     assert {n for n, _ in ranked} == set(hybrid.spec.input_names)
+
+
+def test_look_alike_inputs_are_ranked_as_one_group_represented_by_the_measured_one(hybrid_and_traj) -> None:  # noqa: ANN001
+    """A network that splits its dependence on x between x and a copy of x (here: −x, the input
+    column overwritten) loses to v input by input, but as a group along x's direction it wins."""
+    from physmend.ude.analysis import group_inputs, rank_groups
+
+    _, _, hybrid, traj = hybrid_and_traj
+    names = hybrid.spec.input_names
+    ix, iv, i_f = names.index("cart.x"), names.index("cart.v"), names.index("motor.F")
+    traj.z[:, i_f] = -traj.z[:, ix] + 1e-3 * torch.randn(traj.z.shape[0], dtype=traj.z.dtype)
+    groups = group_inputs(hybrid, traj, ["cart.x"], 0.98, ["cart.v", "motor.F", "cart.x"])
+    by_rep = {g.representative: g for g in groups}
+    assert set(by_rep) == {"cart.x", "cart.v"}
+    assert by_rep["cart.x"].members == ["cart.x", "motor.F"] and by_rep["cart.x"].signs == [1.0, -1.0]
+    jac = torch.zeros(10, len(hybrid.spec.corrected), len(names), dtype=traj.z.dtype)
+    jac[..., ix], jac[..., i_f], jac[..., iv] = 1.0, -1.0, 1.5  # d/dx of the shared direction: 1 + 1
+    assert rank_inputs(hybrid, jac)[0][0] == "cart.v"
+    ranked = rank_groups(hybrid, jac, groups)
+    assert [g.representative for g, _ in ranked] == ["cart.x", "cart.v"]
+    assert ranked[1][1] == pytest.approx(0.75)
+    # no grouping below the threshold: every input its own group
+    assert len(group_inputs(hybrid, traj, ["cart.x"], 1.01, names)) == len(names)

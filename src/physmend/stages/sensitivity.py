@@ -4,6 +4,13 @@ Jacobian of the kept corrections with respect to every network input along the t
 trajectories (``torch.func``), each column scaled by its input's spread; inputs ranked by mean
 absolute sensitivity; a heatmap (inputs × outputs, top inputs marked); the top k (or the names
 given in ``sensitivity.inputs``) are passed on to symbolic regression.
+
+Along training trajectories some inputs move together (an air temperature and the wall surface
+layers beside it correlate at r > 0.98), and one network may lean on any of them: the data cannot
+tell them apart. Inputs correlated at ``|r| >= sensitivity.group_r`` with a representative are
+therefore ranked as one group, by the sensitivity along their common direction; a measured
+quantity represents its group (its values are known, a hidden state's are simulated), and the
+representatives of the top k groups are passed on. ``group_r: null`` ranks single inputs.
 """
 
 from __future__ import annotations
@@ -35,7 +42,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
     from physmend.stages.common import load_source, merged, resolve
     from physmend.tracking import TrackingError, open_store, stage_run
-    from physmend.ude.analysis import input_jacobian, rank_inputs, training_trajectories
+    from physmend.ude.analysis import group_inputs, input_jacobian, rank_groups, rank_inputs, training_trajectories
+    from physmend.ude.warmstart import measured_states
 
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("mask", "trial"), latest=source_run_id is None)
@@ -47,6 +55,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     jac = input_jacobian(hybrid, traj, max_rows=int(cfg.sensitivity.max_rows))
     ranking = rank_inputs(hybrid, jac, kept)
     names = hybrid.spec.input_names
+    group_r = cfg.sensitivity.get("group_r")
+    measured = [problem.model.state_names[i] for _, i in measured_states(problem)]
+    groups = group_inputs(hybrid, traj, measured, float(group_r) if group_r is not None else 1.1, [n for n, _ in ranking])
+    grouped = rank_groups(hybrid, jac, groups, kept)
+    top_k = int(cfg.sensitivity.top_k)
     if cfg.sensitivity.inputs:
         chosen = [str(n) for n in cfg.sensitivity.inputs]
         unknown = [n for n in chosen if n not in names]
@@ -56,9 +69,12 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                 f"{src_run.info.run_id!r}; its inputs are {names}"
             )
         how = "chosen by name (sensitivity.inputs)"
+    elif group_r is not None:
+        chosen = [g.representative for g, _ in grouped[:top_k]]
+        how = f"representatives of the top {top_k} groups (|r| >= {float(group_r):g})"
     else:
-        chosen = [n for n, _ in ranking[: int(cfg.sensitivity.top_k)]]
-        how = f"top {int(cfg.sensitivity.top_k)} by sensitivity"
+        chosen = [n for n, _ in ranking[:top_k]]
+        how = f"top {top_k} by sensitivity"
     rows = [hybrid.spec.corrected.index(k) for k in kept]
     mag = jac[:, rows].abs().mean(0)
     mag = (mag / mag.amax(-1, keepdim=True).clamp_min(1e-300)).numpy()
@@ -66,6 +82,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                    tags={"physmend.inputs": ",".join(chosen), "physmend.kept": ",".join(kept)}) as run_:
         run_.log_params({"inputs": ",".join(chosen), "kept": ",".join(kept), "how": how})
         run_.log_json({"ranking": ranking, "chosen": chosen, "kept": kept, "inputs": names,
+                       "groups": [{"representative": g.representative, "members": g.members, "score": sc}
+                                  for g, sc in grouped],
                        "matrix": mag.tolist()}, "sensitivity.json")
         fig = _heatmap(mag, names, kept, chosen)
         run_.log_figure(fig, "plots/sensitivity.png")
@@ -74,6 +92,12 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     lines = [f"# physmend sensitivity — source {src_run.data.tags.get('physmend.stage')} run {src_run.info.run_id}", "",
              f"Kept corrections: {', '.join(kept)}. Inputs ranked by mean |∂correction/∂input|·std(input):", ""]
     lines += [f"{i + 1:3d}. {'★' if n in chosen else ' '} {n}  {s:.3f}" for i, (n, s) in enumerate(ranking[:12])]
+    if group_r is not None:
+        lines += ["", f"Ranked as groups of inputs that move together (|r| >= {float(group_r):g} along the training "
+                  "trajectories), by the sensitivity along their common direction:", ""]
+        for i, (g, sc) in enumerate(grouped[:8]):
+            others = f"  (with {', '.join(g.members[1:])})" if len(g.members) > 1 else ""
+            lines.append(f"{i + 1:3d}. {'★' if g.representative in chosen else ' '} {g.representative}  {sc:.3f}{others}")
     lines += ["", f"Passed to symbolic regression ({how}): {', '.join(chosen)}"]
     print("\n".join(lines))
     print(f"\nsensitivity run: {run_id}\nnext: physmend symbolic {run_id}")

@@ -114,3 +114,69 @@ def equation_corrections(hybrid: HybridModel, problem: Problem, traj: HybridTraj
         coef = torch.as_tensor(coef, dtype=traj.p.dtype).expand(traj.p.shape[0])
         cols.append(coef * traj.corr[:, hybrid.spec.corrected.index(name)])
     return torch.stack(cols, 1)
+
+
+@dataclass
+class InputGroup:
+    """Network inputs that move together along every training trajectory (|r| ≥ a threshold).
+
+    ``representative`` stands for the group (a measured quantity where the group has one),
+    ``members`` are all its inputs (representative first) and ``signs`` their correlation signs.
+    """
+
+    representative: str
+    members: list[str]
+    signs: list[float]
+
+
+def group_inputs(hybrid: HybridModel, traj: HybridTrajectories, measured: list[str], threshold: float,
+                 order: list[str]) -> list[InputGroup]:
+    """Group inputs the training data cannot tell apart: each group's members correlate with its
+    representative at ``|r| >= threshold`` (no chaining). Measured quantities claim members first
+    (their values are known, a hidden state's are simulated), then the other inputs in ``order``.
+    """
+    names = hybrid.spec.input_names
+    z = traj.z
+    zc = z - z.mean(0)
+    norm = zc.pow(2).sum(0).sqrt()
+    ok = norm > 1e-12
+    corr = (zc.T @ zc) / (norm[:, None] * norm[None, :]).clamp_min(1e-300)
+    free = set(names)
+    groups: list[InputGroup] = []
+    for rep in [n for n in measured if n in names] + [n for n in order if n not in measured]:
+        if rep not in free:
+            continue
+        i = names.index(rep)
+        members, signs = [rep], [1.0]
+        free.discard(rep)
+        if bool(ok[i]):
+            for j, other in enumerate(names):
+                if other in free and bool(ok[j]) and abs(float(corr[i, j])) >= threshold:
+                    members.append(other)
+                    signs.append(1.0 if float(corr[i, j]) > 0 else -1.0)
+                    free.discard(other)
+        groups.append(InputGroup(rep, members, signs))
+    return groups
+
+
+def rank_groups(hybrid: HybridModel, jac: torch.Tensor, groups: list[InputGroup], keep: list[str] | None = None
+                ) -> list[tuple[InputGroup, float]]:
+    """Groups ranked by the sensitivity along their common direction, largest first.
+
+    Moving every member of a group together (each by its spread, with its sign) changes a
+    correction by ``Σ_j s_j J_j``: how the network splits a dependence among look-alike inputs
+    does not matter. Per output normalised to max 1, then averaged over the kept outputs.
+    """
+    names = hybrid.spec.input_names
+    rows = [hybrid.spec.corrected.index(k) for k in keep] if keep else list(range(jac.shape[1]))
+    j = jac[:, rows]  # (R, k, n_features)
+    cols = []
+    for g in groups:
+        idx = [names.index(m) for m in g.members]
+        signs = torch.tensor(g.signs, dtype=j.dtype)
+        cols.append((j[..., idx] * signs).sum(-1).abs().mean(0))  # (k,)
+    mag = torch.stack(cols, -1)  # (k, n_groups)
+    mag = mag / mag.amax(-1, keepdim=True).clamp_min(1e-300)
+    score = mag.mean(0)
+    order = torch.argsort(score, descending=True).tolist()
+    return [(groups[i], float(score[i])) for i in order]

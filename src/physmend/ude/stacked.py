@@ -1,7 +1,11 @@
 """Several hybrid models (a group of sweep trials) trained together in one batched solve.
 
 On small ODEs, per-operation dispatch, not arithmetic, dominates an epoch: a stack of ``M``
-same-shaped networks costs about as much as one. :func:`train_stack` trains ``M`` configurations
+same-shaped networks costs about as much as one (the 2-state oscillator of the tests: 16 models
+per epoch for twice the time of one). On larger ones arithmetic takes over from a few models on
+(the 28-state cargo box: about 2.5-3x less time per model from M = 4 to 32; padding mixed widths
+and depths to the largest costs part of that, see ``stack_key(architecture=True)``).
+:func:`train_stack` trains ``M`` configurations
 as one multiple-shooting solve over ``M·S`` rows (``S`` segments per model) and evaluates the
 still-active models in one whole-trajectory solve over ``M·B`` rows (``B`` experiments), yet every
 model remains exactly its own trial, as :func:`physmend.ude.train.train` would run it:
@@ -12,8 +16,8 @@ model remains exactly its own trial, as :func:`physmend.ude.train.train` would r
   hidden layers (``h ← h``), and each model's rows pass through its own activation;
 * its own initialisation (seed) and warm start, built on its own :class:`HybridModel` exactly as
   ``train()`` builds it, then copied into the padded tensors;
-* its own AdamW (learning rate, weight decay, cosine schedule), gradient clipping (norm 10 per
-  model), trainable segment starts and jointly estimated parameters;
+* its own AdamW (learning rate, weight decay, schedule and warm-up ramp), gradient clipping
+  (norm 10 per model), trainable segment starts and jointly estimated parameters;
 * its own evaluations, early stopping, best checkpoint and report callback; a model that stops
   (patience, divergence, an exception raised by ``report``) leaves the stack, the others go on;
 * its own :class:`TrainResult` at the end, with an ordinary :class:`HybridModel` of its own
@@ -41,7 +45,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 
 from physmend.problem import Problem
-from physmend.simulate import Batch, SimulationError, make_batch
+from physmend.simulate import Batch, make_batch
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec, UDEConfigError
 from physmend.ude.train import (
     Reference,
@@ -59,6 +63,7 @@ from physmend.ude.train import (
     artifacts_of,
     build_spec,
     fit_figures,
+    lr_factor,
     plan_shooting,
     reference,
     rk4_segments,
@@ -98,15 +103,19 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def stack_key(cfg: DictConfig) -> tuple[tuple[str, Any], ...]:
+def stack_key(cfg: DictConfig, *, architecture: bool = False) -> tuple[tuple[str, Any], ...]:
     """The settings that must agree for configurations to train in one stack, as ``(key, value)`` pairs.
 
     Trials whose keys are equal can be passed together to :func:`train_stack`; they may differ in
     ``seed``, ``ude.width``, ``ude.depth`` (all ≥ 1, or all 0), ``ude.activation``,
-    ``ude.output_scale``, ``train.lr``, ``train.weight_decay``, ``train.sparsity`` and the warm-start settings.
+    ``ude.output_scale``, ``train.lr``, ``train.weight_decay``, ``train.sparsity`` and the
+    warm-start settings. ``architecture=True`` adds width, depth and activation to the key: stacks
+    of one architecture need no padding, which pays where arithmetic, not dispatch, dominates.
     """
     pairs = [(key, _plain(OmegaConf.select(cfg, key, default=None))) for key in SHARED_KEYS]
     pairs.append((_LINEAR_KEY, int(cfg.ude.depth) == 0))
+    if architecture:
+        pairs += [(key, _plain(OmegaConf.select(cfg, key, default=None))) for key in ("ude.width", "ude.depth", "ude.activation")]
     return tuple(pairs)
 
 
@@ -132,23 +141,31 @@ class _Net:
 
     Shapes: ``weights[l] (M, a_l, b_l)`` (transposed ``nn.Linear`` weights), ``biases[l] (M, 1, b_l)``;
     ``use[l] (M, 1, 1)`` False where a model has fewer hidden layers (the layer is skipped) or None;
-    ``acts`` one ``(activation, rows (M, 1, 1) or None)`` per activation present;
+    ``activations`` each model's activation name: models are ordered so that each activation's
+    models are consecutive, and every activation runs on its own models only;
     ``scale (M, 1, k)`` the output scale times the output mask.
     """
 
     weights: list[torch.Tensor]
     biases: list[torch.Tensor]
     use: list[torch.Tensor | None]
-    acts: list[tuple[nn.Module, torch.Tensor | None]]
+    activations: list[str]
     scale: torch.Tensor
+    runs: list[tuple[nn.Module, int, int]] = field(init=False)  # (activation, first model, end)
+
+    def __post_init__(self) -> None:
+        self.runs = []
+        for i, name in enumerate(self.activations):
+            if self.runs and self.activations[i - 1] == name:
+                act, start, _ = self.runs[-1]
+                self.runs[-1] = (act, start, i + 1)
+            else:
+                self.runs.append((ACTIVATIONS[name](), i, i + 1))
 
     def activation(self, a: torch.Tensor) -> torch.Tensor:
-        out: torch.Tensor | None = None
-        for act, rows in self.acts:
-            y = act(a)
-            out = y if out is None or rows is None else torch.where(rows, y, out)
-        assert out is not None
-        return out
+        if len(self.runs) == 1:
+            return self.runs[0][0](a)
+        return torch.cat([act(a[start:end]) for act, start, end in self.runs])
 
     def __call__(self, z: torch.Tensor) -> torch.Tensor:
         """Corrections ``(M, N, k)`` of normalised features ``z (M, N, n_in)``."""
@@ -169,7 +186,7 @@ class _Net:
             weights=[w.detach()[rows] for w in self.weights],
             biases=[b.detach()[rows] for b in self.biases],
             use=[None if u is None else u[rows] for u in self.use],
-            acts=[(act, None if m is None else m[rows]) for act, m in self.acts],
+            activations=[self.activations[i] for i in rows.tolist()],
             scale=self.scale[rows],
         )
 
@@ -204,14 +221,8 @@ def _pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[_
     for l in range(depth):
         rows = torch.tensor([d > l for d in depths]).reshape(m, 1, 1)
         use.append(None if bool(rows.all()) else rows)
-    names = [s.activation for s in specs]
-    present = [a for a in ACTIVATIONS if a in names]
-    acts: list[tuple[nn.Module, torch.Tensor | None]] = [
-        (ACTIVATIONS[a](), None if len(present) == 1 else torch.tensor([n == a for n in names]).reshape(m, 1, 1))
-        for a in present
-    ]
     scale = torch.stack([h.out_scale * h.out_mask for h in hybrids])[:, None, :].to(dtype)
-    net = _Net(weights, biases, use, acts, scale)
+    net = _Net(weights, biases, use, [s.activation for s in specs], scale)
     masks: list[torch.Tensor | None] = []
     for mk in [x for pair in zip(w_mask, b_mask) for x in pair]:
         masks.append(None if bool(mk.all()) else mk)
@@ -251,19 +262,18 @@ class _Member:
     done: bool = False
 
 
-def _lr_schedule(cfg: DictConfig) -> list[float]:
-    """The learning rate of every epoch, from the same optimiser/scheduler pair train() uses."""
+def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
+    """The learning rate of every epoch, from the optimiser/scheduler pair train() uses."""
     tc = cfg.train
     epochs = int(tc.epochs)
     dummy = torch.nn.Parameter(torch.zeros(1))
     opt = torch.optim.AdamW([dummy], lr=float(tc.lr))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(epochs, 1)) if str(tc.schedule) == "cosine" else None
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor(tc, epochs, warm=warm))
     lrs = []
     for _ in range(epochs):
         lrs.append(float(opt.param_groups[0]["lr"]))
-        if sched is not None:
-            opt.step()  # no gradient: nothing moves; keeps the scheduler's step-order check quiet
-            sched.step()
+        opt.step()  # no gradient: nothing moves; keeps the scheduler's step-order check quiet
+        sched.step()
     return lrs
 
 
@@ -300,6 +310,8 @@ class _Stack:
     MAX_NORM = 10.0
 
     def __init__(self, members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig) -> None:
+        order = list(ACTIVATIONS)  # models of one activation side by side (see _Net)
+        members = sorted(members, key=lambda mem: order.index(mem.hybrid.spec.activation))
         self.members = members
         self.problem = problem
         self.ref = ref
@@ -360,7 +372,8 @@ class _Stack:
                        for t, (_, mk, decay, clip) in zip(tensors, self.params)]
         self._bind_tensors(tensors)
         self.net.use = [None if u is None else u[rows] for u in self.net.use]
-        self.net.acts = [(act, None if mk is None else mk[rows]) for act, mk in self.net.acts]
+        self.net.activations = [self.net.activations[i] for i in positions]
+        self.net.__post_init__()
         self.net.scale = self.net.scale[rows]
         self.exp_avg = [t[rows].clone() for t in self.exp_avg]
         self.exp_avg_sq = [t[rows].clone() for t in self.exp_avg_sq]
@@ -496,7 +509,7 @@ class _Stack:
                 p = self._parameters_for(batch.params, est, m)  # (M·B, n_params)
                 states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
                 y = self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
-        except SimulationError:
+        except Exception:  # noqa: BLE001 - one model's failure must not end the others: solve each alone
             return [self._evaluate_alone(i, sim) for i in positions]
         out: list[tuple[dict[str, float], torch.Tensor] | BaseException] = []
         for j in range(m):
@@ -512,7 +525,7 @@ class _Stack:
         self.write_back(position)
         try:
             metrics, y, _ = _evaluate(member.hybrid, self.problem, sim)
-        except TrainingDiverged as exc:
+        except Exception as exc:  # noqa: BLE001 - what train() would have raised for this model
             return exc
         return metrics, y
 
@@ -530,7 +543,8 @@ def _prepare(cfg: DictConfig, problem: Problem, ref: Reference, plan: Shooting, 
     forced = warm_start(hybrid, problem, ref.batch, cfg)
     if forced is not None:
         seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
-    return _Member(slot=slot, cfg=cfg, hybrid=hybrid, forced=forced, seg0=seg0, lrs=_lr_schedule(cfg))
+    return _Member(slot=slot, cfg=cfg, hybrid=hybrid, forced=forced, seg0=seg0,
+                   lrs=_lr_schedule(cfg, warm=forced is not None))
 
 
 def _check_same_shape(members: list[_Member]) -> None:

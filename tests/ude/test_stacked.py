@@ -1,0 +1,201 @@
+"""Several hybrid models trained in one batched solve: each must be exactly its own trial."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from physmend.config import compose
+from physmend.problem import load_problem
+from physmend.ude import TrainingDiverged, TrainResult, UDEConfigError, evaluate, load_hybrid, train
+from physmend.ude.stacked import _metrics, _prepare, _Stack, stack_key, train_stack
+from physmend.ude.train import _evaluate, _sim_opts, plan_shooting, reference
+
+# the oscillator of tests/conftest.py; an explicit solver keeps whole-trajectory evaluations short
+BASE = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=4",
+        "train.eval_every=2", "train.patience=0", "simulate=explicit", "simulate.rtol=1e-5", "simulate.atol=1e-6"]
+# three trials that share the solve but nothing else
+TRIALS = [
+    ["seed=1", "ude.width=8", "ude.depth=1", "ude.activation=tanh", "train.lr=0.02"],
+    ["seed=2", "ude.width=16", "ude.depth=2", "ude.activation=softplus", "train.lr=0.01", "train.weight_decay=1e-3"],
+    ["seed=3", "ude.width=12", "ude.depth=3", "ude.activation=gelu", "train.lr=0.005", "ude.output_scale=0.05"],
+]
+
+
+@pytest.fixture(autouse=True)
+def _close_figures():  # noqa: ANN202 - every TrainResult carries fit figures
+    yield
+    import matplotlib.pyplot as plt
+
+    plt.close("all")
+
+
+@pytest.fixture
+def short_project(user_project: Path) -> Path:
+    """The oscillator project with records cut to their first 30 s (evaluations cost per input sample)."""
+    for path in (user_project / "recordings").glob("*.csv"):
+        frame = pd.read_csv(path)
+        frame[frame["t_s"] < frame["t_s"].iloc[0] + 30.0].to_csv(path, index=False)
+    return user_project
+
+
+def _cfg(project: Path, *extra: str, warm_start: str = "auto"):  # noqa: ANN202
+    cfg = compose([*BASE, *extra], user_config_dir=project / "my_conf")
+    OmegaConf.update(cfg, "train.warm_start", warm_start, force_add=True)
+    OmegaConf.update(cfg, "train.warm_iterations", 100, force_add=True)  # a shorter warm start
+    OmegaConf.update(cfg, "train.warmup_epochs", 2, force_add=True)  # and a learning-rate ramp after it
+    return cfg
+
+
+def test_each_model_of_a_stack_trains_exactly_as_alone(short_project: Path, monkeypatch: pytest.MonkeyPatch,
+                                                      tmp_path: Path) -> None:
+    monkeypatch.chdir(short_project)
+    cfgs = [_cfg(short_project, *t) for t in TRIALS]
+    assert len({stack_key(c) for c in cfgs}) == 1
+    problem = load_problem(cfgs[0])
+    seen: list[tuple[int, int]] = []
+    results = train_stack(cfgs, problem, report=lambda i, epoch, row: seen.append((i, epoch)))
+    # the warm start is evaluated (epoch 0) as train() does, then every eval_every epochs
+    assert sorted(seen) == [(i, e) for i in range(3) for e in (0, 2, 4)]
+    for cfg, result in zip(cfgs, results):
+        assert isinstance(result, TrainResult), result
+        alone = train(cfg, problem)
+        # own architecture, exactly: the same state_dict keys and shapes as a model trained alone
+        ours, theirs = result.hybrid.state_dict(), alone.hybrid.state_dict()
+        assert {k: v.shape for k, v in ours.items()} == {k: v.shape for k, v in theirs.items()}
+        assert result.hybrid.spec.widths == [int(cfg.ude.width)] * int(cfg.ude.depth)
+        # The same weights: batched products (baddbmm over padded tensors) round differently from
+        # nn.Linear, so agreement is to a few ulps, not bit for bit.
+        for key in theirs:
+            torch.testing.assert_close(ours[key], theirs[key], rtol=1e-9, atol=1e-12, msg=key)
+        # final metrics come from the model's own solo evaluation, as in train()
+        assert result.val_rmse == pytest.approx(alone.val_rmse, rel=1e-6)
+        assert set(result.metrics) == set(alone.metrics)
+        for key, value in alone.metrics.items():
+            assert result.metrics[key] == pytest.approx(value, rel=1e-6, abs=1e-12), key
+        assert [r["epoch"] for r in result.history] == [r["epoch"] for r in alone.history] == [0.0, 2.0, 4.0]
+        for ours_row, alone_row in zip(result.history[1:], alone.history[1:]):
+            # training losses are the same computation, row for row
+            assert ours_row["loss"] == pytest.approx(alone_row["loss"], rel=1e-9)
+            assert ours_row["fit_loss"] == pytest.approx(alone_row["fit_loss"], rel=1e-9)
+        for ours_row, alone_row in zip(result.history, alone.history):
+            # checkpoint metrics come from one adaptive solve of all models, whose shared step sizes
+            # differ from a solo solve's: they agree to the solver tolerance, not to rounding
+            assert ours_row["val.rmse"] == pytest.approx(alone_row["val.rmse"], rel=1e-3)
+        assert set(result.figures) == set(alone.figures)
+    # artifacts are train()'s: a reloaded model reproduces the metric
+    result = results[1]
+    assert isinstance(result, TrainResult)
+    for rel, content in result.artifacts.items():
+        path = tmp_path / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(content if isinstance(content, bytes) else content.encode())
+    rebuilt = load_hybrid(cfgs[1], problem, tmp_path)
+    assert evaluate(rebuilt, problem, cfgs[1])["val.rmse"] == pytest.approx(result.val_rmse, rel=1e-9)
+
+
+def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(short_project)
+    # sigmoid and softplus are non-zero at 0: padded units are active, only their weights keep them out
+    trials = [["seed=4", "ude.width=3", "ude.depth=1", "ude.activation=sigmoid"],
+              ["seed=5", "ude.width=7", "ude.depth=3", "ude.activation=softplus"],
+              ["seed=6", "ude.width=5", "ude.depth=2", "ude.activation=tanh"]]
+    cfgs = [_cfg(short_project, *t, "train.lr=0.1", "train.weight_decay=0.5", warm_start="none") for t in trials]
+    problem = load_problem(cfgs[0])
+    ref = reference(problem, cfgs[0])
+    plan = plan_shooting(problem, ref.batch, cfgs[0])
+    members = [_prepare(c, problem, ref, plan, i) for i, c in enumerate(cfgs)]
+    stack = _Stack(members, problem, ref, plan, cfgs[0])
+    masked = [(p, mk) for p, mk, _, _ in stack.params if mk is not None]
+    assert len(masked) == 2 * 4 - 1  # weights and biases of 3 hidden layers and the output layer (its bias is not padded)
+    for _ in range(3):
+        loss, _ = stack.losses()
+        stack.step(loss, torch.full((3,), 0.1, dtype=problem.dtype), torch.arange(3))
+    for p, mk in masked:
+        assert bool((p.detach()[~mk] == 0).all())
+        assert bool((p.detach()[mk] != 0).any())
+    for (p, mk, _, _), m1, m2 in zip(stack.params, stack.exp_avg, stack.exp_avg_sq):
+        if mk is not None:
+            assert bool((m1[~mk] == 0).all()) and bool((m2[~mk] == 0).all())
+    # every stack row computes what its own (unpadded) model computes
+    u = ref.states[::50, :2]  # (T', 2 experiments, n)
+    x = ref.inputs[::50, :2]
+    p = ref.batch.params[:2]
+    rows = stack._corrections(stack.net, 3, u.repeat(1, 3, 1), x.repeat(1, 3, 1), p.repeat(3, 1))
+    for i, mem in enumerate(stack.members):
+        stack.write_back(i)
+        with torch.no_grad():
+            own = mem.hybrid.corrections(u, x, p)
+        torch.testing.assert_close(rows[:, 2 * i:2 * i + 2].detach(), own, rtol=1e-12, atol=1e-15)
+    # batched evaluations compute each model's metrics with train()'s definitions
+    metrics, y, batch = _evaluate(mem.hybrid, problem, _sim_opts(cfgs[0]))
+    assert _metrics(problem, batch, y) == metrics
+    # a failed batched solve falls back to solving each model alone, each failure its own outcome
+    outcomes = stack.evaluate([0, 2], {**_sim_opts(cfgs[0]), "method": "no-such-method"})
+    assert len(outcomes) == 2 and all(isinstance(o, TrainingDiverged) and "no-such-method" in str(o) for o in outcomes)
+
+
+def test_a_stopped_or_diverging_model_leaves_the_others_alone(short_project: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(short_project)
+
+    class Pruned(Exception):
+        pass
+
+    cfgs = [_cfg(short_project, "train.epochs=6", *extra, warm_start="none") for extra in (
+        ["seed=1", "train.lr=0.02"],
+        ["seed=2", "train.lr=0.02"],
+        ["seed=3", "ude.output_scale=1.0e200"],  # corrections overflow: the loss is not finite in epoch 1
+    )]
+    seen: list[tuple[int, int]] = []
+
+    def report(i: int, epoch: int, row: dict[str, float]) -> None:
+        seen.append((i, epoch))
+        if i == 1 and epoch == 2:
+            raise Pruned("trial 1 pruned at epoch 2")
+
+    problem = load_problem(cfgs[0])
+    results = train_stack(cfgs, problem, report=report, final_eval="checkpoint")
+    assert isinstance(results[1], Pruned)
+    assert isinstance(results[2], TrainingDiverged)
+    assert "training loss became non-finite at epoch 1" in str(results[2])
+    ok = results[0]
+    assert isinstance(ok, TrainResult)
+    assert [r["epoch"] for r in ok.history] == [2.0, 4.0, 6.0]
+    # final_eval="checkpoint": the best batched evaluation's metrics, within solver tolerance of a solo one
+    assert ok.val_rmse == min(r["val.rmse"] for r in ok.history)
+    assert evaluate(ok.hybrid, problem, cfgs[0])["val.rmse"] == pytest.approx(ok.val_rmse, rel=1e-3)
+    assert {"train.rmse", "test.rmse", "estimate.damper.c"} <= set(ok.metrics) and ok.figures
+    # the survivor trained on, unchanged, after the others left the stack
+    alone = train(cfgs[0], problem)
+    for key, value in alone.hybrid.state_dict().items():
+        torch.testing.assert_close(ok.hybrid.state_dict()[key], value, rtol=1e-9, atol=1e-12, msg=key)
+    assert [r["loss"] for r in ok.history] == pytest.approx([r["loss"] for r in alone.history], rel=1e-9)
+    assert [e for i, e in seen if i == 0] == [2, 4, 6]
+    assert [e for i, e in seen if i == 1] == [2]
+    assert [e for i, e in seen if i == 2] == []
+
+
+def test_shared_settings_must_agree(short_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(short_project)
+    a = _cfg(short_project, "seed=1", "ude.width=8")
+    b = _cfg(short_project, "seed=2", "ude.width=16", "train.lr=0.1", "ude.activation=gelu")
+    assert stack_key(a) == stack_key(b)
+    assert stack_key(a, architecture=True) != stack_key(b, architecture=True)
+    c = _cfg(short_project, "train.step=0.1")
+    assert stack_key(a) != stack_key(c)
+    with pytest.raises(UDEConfigError, match=r"same `train\.step`.* model 0 has 0\.05 and model 1 has 0\.1"):
+        train_stack([a, c], None)  # type: ignore[arg-type]  # checked before the problem is used
+    d = _cfg(short_project, "ude.corrected=[cart.v]")
+    with pytest.raises(UDEConfigError, match=r"same `ude\.corrected`"):
+        train_stack([a, b, d], None)  # type: ignore[arg-type]
+    e = _cfg(short_project, "ude.depth=0")
+    with pytest.raises(UDEConfigError, match=r"ude\.depth == 0"):
+        train_stack([a, e], None)  # type: ignore[arg-type]
+    with pytest.raises(UDEConfigError, match=r"final_eval must be 'own' or 'checkpoint', but got 'best'"):
+        train_stack([a], None, final_eval="best")  # type: ignore[arg-type]

@@ -108,3 +108,37 @@ def test_no_warm_start_when_no_output_is_a_state(user_project: Path, monkeypatch
     cfg = compose(["model=oscillator", "data=oscillator"], user_config_dir=user_project / "my_conf")
     problem = load_problem(cfg)
     assert measured_states(problem) == [(0, 0)]
+
+
+def test_formulas_are_judged_by_the_recordings(room_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``symbolic.select=recorded``: against the recorded mismatch of the air equation, the
+    catalogue's one-constant conductance to outside beats a constant and a wrong pairing, and a
+    5-constant polynomial that explains no more loses on parsimony."""
+    import sympy as sp
+
+    from physmend.stages.symbolic import catalogue_candidates, choose_by_recordings
+    from physmend.symbolic import Candidate, ParetoFront
+    from physmend.ude.rates import recorded_rates
+
+    monkeypatch.chdir(room_project)
+    cfg = compose(["model=room", "data=room", "ude.width=8", "ude.depth=1"], user_config_dir=room_project / "conf")
+    problem = load_problem(cfg)
+    hybrid = HybridModel(problem.compiled, build_spec(cfg, problem, reference(problem, cfg)), problem.dtype)
+    rates = recorded_rates(hybrid, problem, cfg, ["air.T", "wall.T"], 1800.0)
+    assert rates is not None and set(rates.targets) == {"air.T"}  # the wall is not measured
+    inputs = ["air.T", "wall.T", "outside.T"]
+    units = {n: "degC" for n in inputs}
+    cols = {n: rates.columns[n][rates.window // 2:][: rates.valid.shape[0]][rates.valid] for n in inputs}
+    y = rates.targets["air.T"][rates.valid]
+    cands = catalogue_candidates(inputs, units, cols, y)
+    a, o = sp.Symbol("air.T"), sp.Symbol("outside.T")
+    poly = Candidate(expr=sp.Float(0.5) + sp.Float(14.0) * o - sp.Float(15.2) * a + sp.Float(1e-3) * a**2 + sp.Float(1e-4) * a * o,
+                     complexity=15, mse=0.0, r2=0.0, text="polynomial")
+    front = ParetoFront(backend="test", target="air.T", inputs=inputs, candidates=cands + [poly])
+    i, why, scores = choose_by_recordings(rates, "air.T", front, 0.1)
+    chosen = front.candidates[i]
+    assert "conductance" in chosen.text and {s.name for s in chosen.expr.free_symbols} == {"air.T", "outside.T"}, why
+    alpha, r2 = scores[i]
+    assert r2 > 0.8
+    coef = float(abs(chosen.expr.subs({a: 1.0, o: 0.0}) - chosen.expr.subs({a: 0.0, o: 0.0})) * alpha)
+    assert coef == pytest.approx(15.0, rel=0.2)  # W/K of the concealed ventilation

@@ -347,6 +347,7 @@ class Settings:
     stale_after: float
     max_failures_in_a_row: int
     progress: bool
+    group: int = 1
 
     @classmethod
     def from_cfg(cls, sweep: Any) -> Settings:
@@ -383,6 +384,7 @@ class Settings:
             stale_after=number("stale_after", float, 1.0),
             max_failures_in_a_row=number("max_failures_in_a_row", int, 0),
             progress=bool(sweep.get("progress", True)),
+            group=number("group", int, 1) if sweep.get("group") is not None else 1,
         )
 
     def sampler_for(self, trial_index: int) -> "optuna.samplers.BaseSampler":
@@ -716,12 +718,121 @@ class Sweep:
             if self.settings.timeout is not None and time.monotonic() - start >= self.settings.timeout:
                 _say(bar, f"sweep.timeout of {self.settings.timeout:g} s reached; no new trial is started")
                 break
+            if self.settings.group > 1:
+                batch = self.trial_group(bar, min(self.settings.group, self.settings.n_trials - counts.counted - counts.running))
+                if batch is None:
+                    break
+                for outcome in batch:
+                    outcomes.append(outcome)
+                    self._after(outcome, bar)
+                continue
             outcome = self.one_trial(bar)
             if outcome is None:
                 break
             outcomes.append(outcome)
             self._after(outcome, bar)
         return outcomes
+
+    def trial_group(self, bar: Any, size: int) -> list[Outcome] | None:
+        """Ask for up to ``size`` trials and train those that can share a solve as one stack
+        (:func:`physmend.ude.stacked.train_stack`, grouped by ``stack_key``); each is still its own
+        trial with its own child run. ``None`` when no trial could be asked (surplus)."""
+        import contextlib
+
+        from optuna.trial import TrialState
+
+        from physmend.ude.stacked import stack_key
+
+        asked = []
+        for _ in range(max(1, size)):
+            self.study.sampler = self.settings.sampler_for(len(self.study.get_trials(deepcopy=False)))
+            trial = self.study.ask()
+            trial.set_user_attr(WORKER_ATTR, self.me)
+            if self._surplus(trial):
+                trial.set_user_attr(REASON_ATTR, "surplus")
+                self.study.tell(trial, state=TrialState.FAIL)
+                break
+            asked.append(trial)
+        if not asked:
+            return None
+        outcomes: dict[int, Outcome] = {}
+        groups: dict[Any, list[tuple[Any, dict[str, Any], DictConfig, Any]]] = {}
+        for trial in asked:
+            values = self.space.suggest(trial)
+            try:
+                cfg = self.configs.config(values)
+                problem = self.configs.problem(values, cfg)
+            except Exception as exc:  # noqa: BLE001 - a bad trial config fails the trial, not the sweep
+                outcomes[trial.number] = Outcome(trial.number, "FAIL", reason=f"{type(exc).__name__}: {exc}")
+                continue
+            groups.setdefault((stack_key(cfg), id(problem)), []).append((trial, values, cfg, problem))
+        try:
+            with contextlib.ExitStack() as beats:
+                for trial in asked:
+                    beats.enter_context(Heartbeat(trial, self.settings.heartbeat_interval))
+                for members in groups.values():
+                    outcomes.update(self._train_group(members))
+        except KeyboardInterrupt:
+            for trial in asked:
+                if trial.number not in outcomes:
+                    trial.set_user_attr(REASON_ATTR, "interrupted")
+                    self.study.tell(trial, state=TrialState.FAIL)
+            raise
+        for trial in asked:
+            self.tell(trial, outcomes[trial.number])
+        return [outcomes[t.number] for t in asked]
+
+    def _train_group(self, members: list[tuple[Any, dict[str, Any], DictConfig, Any]]) -> dict[int, Outcome]:
+        """Train one stack; then log each trial's buffered metrics and result to its own child run."""
+        from physmend.ude.stacked import train_stack
+
+        reporters = [Reporter(trial, None) for trial, *_ in members]
+        try:
+            results: list[Any] = train_stack([cfg for _, _, cfg, _ in members], members[0][3],
+                                             report=lambda i, epoch, row: reporters[i](epoch, row))
+        except Exception as exc:  # noqa: BLE001 - the whole stack failed: every trial FAILs, the sweep goes on
+            results = [exc] * len(members)
+        out: dict[int, Outcome] = {}
+        for (trial, values, cfg, _), reporter, result in zip(members, reporters, results):
+            holder: dict[str, str] = {}
+            try:
+                out[trial.number] = self._log_stacked(trial, values, cfg, reporter, result, holder)
+            except Exception as exc:  # noqa: BLE001 - diverged, solver failure, anything: FAIL
+                self._mark_child(holder.get("run_id"), "FAIL")
+                out[trial.number] = Outcome(trial.number, "FAIL", run_id=holder.get("run_id"),
+                                            reason=f"{type(exc).__name__}: {exc}")
+        return out
+
+    def _log_stacked(self, trial: "optuna.Trial", values: dict[str, Any], cfg: DictConfig, reporter: "Reporter",
+                     result: Any, holder: dict[str, str]) -> Outcome:
+        import mlflow
+        import optuna
+
+        from physmend.tracking import stage_run
+        from physmend.tracking import selection as sel
+
+        tags = {sel.STUDY_TAG: self.study.study_name, sel.TRIAL_NUMBER_TAG: str(trial.number), "physmend.stacked": "true"}
+        with stage_run(
+            self.store, cfg, stage=sel.TRIAL_STAGE, source_run_id=self.parent_run_id,
+            run_name=f"trial-{trial.number:04d}", parent_run_id=self.parent_run_id, tags=tags,
+        ) as run_:
+            holder["run_id"] = run_.run_id
+            trial.set_user_attr(RUN_ID_ATTR, run_.run_id)
+            run_.log_params(values)
+            for epoch, metrics in reporter.buffered:
+                run_.log_metrics(metrics, step=epoch)
+            if isinstance(result, optuna.TrialPruned):
+                run_.set_tags({sel.TRIAL_STATE_TAG: "PRUNED", "physmend.pruned": str(result) or "pruned"})
+                mlflow.end_run("KILLED")
+                return Outcome(trial.number, "PRUNED", value=reporter.last_value, run_id=run_.run_id, reason=str(result))
+            if isinstance(result, BaseException):
+                raise result
+            value = float(result.val_rmse)
+            if not math.isfinite(value):
+                raise FloatingPointError(f"the final val.rmse is not finite ({value})")
+            _log_result(run_, result, step=reporter.last_epoch + 1)
+            run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE"})
+        return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id)
 
     def _after(self, outcome: Outcome, bar: Any) -> None:
         if outcome.state == "FAIL":
@@ -886,9 +997,11 @@ class Reporter:
     """The ``report`` callback of one trial: per-epoch metrics to MLflow, pruning via Optuna."""
 
     def __init__(self, trial: "optuna.Trial", run_: Any) -> None:
+        """``run_`` None: metrics are kept in ``buffered`` (a stacked trial's run is written afterwards)."""
         self.trial, self.run_ = trial, run_
         self.last_epoch = 0
         self.last_value: float | None = None
+        self.buffered: list[tuple[int, dict[str, float]]] = []
 
     def __call__(self, epoch: int, metrics: dict[str, float]) -> None:
         import optuna
@@ -896,7 +1009,10 @@ class Reporter:
         epoch = int(epoch)
         self.last_epoch = max(self.last_epoch, epoch)
         finite = {k: float(v) for k, v in metrics.items() if k != "epoch" and v is not None and math.isfinite(float(v))}
-        self.run_.log_metrics(finite, step=epoch)
+        if self.run_ is None:
+            self.buffered.append((epoch, finite))
+        else:
+            self.run_.log_metrics(finite, step=epoch)
         value = finite.get("val.rmse")
         if value is None:
             return

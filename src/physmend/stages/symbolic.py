@@ -7,6 +7,14 @@ sensitivity run plus ``symbolic.parameters``. A back end returns a Pareto front 
 complexity); one formula per equation is chosen by a stated rule (or by index), its numeric
 constants are named, and they are re-fitted by simulating the corrected model (multiple
 shooting, the constants estimated as model parameters, no network).
+
+With ``symbolic.select: recorded`` and every kept equation's state measured, the front
+is joined by the mechanism catalogue's forms (each fitted to the target), and the formula is
+chosen by the *recordings* rather than by the network: each candidate is scored against the
+measured equation's mismatch along the forced trajectories (:mod:`physmend.ude.rates`), and the
+one with the fewest constants within ``symbolic.tolerance`` of the best score is taken. A network
+absorbs offsets and leans on look-alike inputs; a formula that merely copies those quirks explains
+the recordings no better than the simple form behind them.
 """
 
 from __future__ import annotations
@@ -109,6 +117,64 @@ def refit(cfg: Any, problem_cfg: Any, corrections: list, epochs: int) -> tuple[l
     return fitted, result.metrics
 
 
+def tree_size(expr: sp.Expr) -> int:
+    """Nodes of the expression tree (comparable to a symbolic-regression back end's length)."""
+    return sum(1 for _ in sp.preorder_traversal(expr))
+
+
+def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict[str, np.ndarray],
+                         y: np.ndarray) -> list[Any]:
+    """The catalogue's forms over ``inputs`` (unit rules obeyed), each ``c`` fitted to ``y (N,)``,
+    alone and plus a steady offset (``c·form + c0``: an offset the rest of the model leaves)."""
+    import itertools
+
+    from physmend.explain.mechanisms import load_catalogue
+    from physmend.symbolic import Candidate, display, evaluate, mse_r2
+
+    out, seen = [], set()
+    for m in load_catalogue():
+        for combo in itertools.permutations(inputs, len(m.placeholders)):
+            assignment = dict(zip(m.placeholders, combo))
+            if not m.admissible(assignment, units):
+                continue
+            shape = m.shape.xreplace({sp.Symbol(ph): sp.Symbol(v) for ph, v in assignment.items()})
+            t = evaluate(shape, columns, n=y.size)
+            tt = float(t @ t) if np.isfinite(t).all() else 0.0
+            if tt == 0.0:
+                continue
+            variants = [(float(t @ y) / tt, 0.0)]
+            if not shape.is_Number:
+                (c1, c0), *_ = np.linalg.lstsq(np.stack([t, np.ones_like(t)], 1), y, rcond=None)
+                variants.append((float(c1), float(c0)))
+            for c, c0 in variants:
+                mse, r2 = mse_r2(y, c * t + c0)
+                key = (m.id, frozenset(combo), c0 != 0.0, round(mse, 9))
+                if key in seen:  # a - b and b - a: the same form up to the sign of c
+                    continue
+                seen.add(key)
+                expr = sp.Float(c) * shape + (sp.Float(c0) if c0 != 0.0 else 0)
+                out.append(Candidate(expr=expr, complexity=tree_size(expr), mse=mse, r2=r2,
+                                     text=f"{display(expr)}   [catalogue: {m.name}{' + offset' if c0 else ''}]"))
+    return out
+
+
+def choose_by_recordings(rates: Any, state: str, front: Any, tolerance: float) -> tuple[int, str, list[tuple[float, float]]]:
+    """Index of the formula with the fewest constants whose recorded-mismatch MSE is within
+    ``1 + tolerance`` of the best (among those, the best score); the sentence why; ``(α, R²)`` per candidate."""
+    from physmend.symbolic._expr import n_constants
+
+    scores = [rates.score(c.expr, state) for c in front.candidates]
+    best = min(mse for _, mse, _ in scores)
+    ok = [i for i, (_, mse, _) in enumerate(scores) if mse <= (1.0 + tolerance) * best]
+    pick = min(ok, key=lambda i: (n_constants(front.candidates[i].expr), scores[i][1]))
+    c = front.candidates[pick]
+    why = (f"Rule 'recorded': scored against the recorded mismatch of the {state} equation (weak form, "
+           f"{rates.window} grid steps per window), the formula with the fewest constants whose MSE is within "
+           f"{1 + tolerance:.2g}× of the best ({best:.4g}); chose index {pick} ({n_constants(c.expr)} constant(s), "
+           f"recorded R² {scores[pick][2]:.4f}): {c.text}")
+    return pick, why, [(a, r2) for a, _, r2 in scores]
+
+
 def _correction(problem: Any, state: str, front: Any, idx: int, why: str, columns: dict[str, np.ndarray],
                 units: dict[str, str], sc: Any, chosen: dict[str, Any]) -> Any:
     """The correction for Pareto candidate ``idx`` (clean catalogue form when it fits); records ``chosen``."""
@@ -200,11 +266,29 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     y_all = targets(hybrid, problem, traj, kept)
     fronts, chosen, picks = {}, {}, {}
     choices = dict(sc.choice or {})
+    select = str(sc.get("select", "rule"))
+    if select not in ("recorded", "rule"):
+        raise TrackingError(f"symbolic.select must be 'recorded' or 'rule', but got {select!r}")
+    rates = None
+    if select == "recorded":
+        from physmend.ude.rates import recorded_rates
+
+        rates = recorded_rates(hybrid, problem, work, kept, float(sc.get("window", 1800.0)))
+        if rates is not None and set(rates.targets) != set(kept):
+            rates = None  # some kept equation's state is not measured: the network decides
+    recorded_scores: dict[str, list[tuple[float, float]]] = {}
     for state in kept:
         front = fit(X, y_all[state], x_names, backend=str(sc.backend), target=state, units=units,
                     options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)))
+        if rates is not None:
+            front.candidates = sorted(front.candidates + catalogue_candidates(x_names, units, columns, y_all[state]),
+                                      key=lambda c: (c.complexity, c.mse))
         fronts[state] = front
-        picks[state] = choose(front, rule=str(sc.rule), index=choices.get(state))
+        if rates is not None and choices.get(state) is None:
+            i, why, recorded_scores[state] = choose_by_recordings(rates, state, front, float(sc.get("tolerance", 0.1)))
+            picks[state] = (i, why)
+        else:
+            picks[state] = choose(front, rule=str(sc.rule), index=choices.get(state))
     fallback = ""
     while True:
         corrections = [_correction(problem, state, fronts[state], *picks[state], columns, units, sc, chosen) for state in kept]
@@ -256,9 +340,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         lines += [fallback.strip(), ""]
     for state, front in fronts.items():
         lines.append(f"## {state} (correction in {chosen[state]['unit'] or 'equation units'})")
+        rec = recorded_scores.get(state)
         for i, c in enumerate(front.candidates):
             mark = "→" if i == chosen[state]["index"] else " "
-            lines.append(f" {mark} [{i}] complexity {c.complexity:3d}  R² {c.r2:.4f}  {c.text}")
+            extra = f"  recorded R² {rec[i][1]:.4f}" if rec else ""
+            lines.append(f" {mark} [{i}] complexity {c.complexity:3d}  R² {c.r2:.4f}{extra}  {c.text}")
         lines.append(f"   chosen: {chosen[state]['why']}")
     lines.append("")
     for c in corrections:

@@ -1,0 +1,101 @@
+"""What the recordings say each measured equation is missing, to judge candidate formulas by.
+
+A formula fitted to a trained network inherits the network's quirks (offsets it absorbed, proxies
+it leaned on). The recordings give an independent check wherever an equation's state is measured:
+along the forced trajectories of the warm start (:mod:`physmend.ude.warmstart`) the equation's
+mismatch is known from data alone,
+
+    M_i(t) = a_i · ( dŷ_i/dt − f_i(û, x, p) )        [equation units, e.g. W],
+
+averaged over windows (``symbolic.window`` seconds) (weak form: the noise of a differentiated
+record averages out). A candidate term ``g`` is scored by how much of ``M_i`` it explains once
+scaled by its best factor ``α``; no ODE is solved.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import sympy as sp
+import torch
+
+from physmend.problem import Problem
+from physmend.simulate import make_batch
+from physmend.ude.hybrid import HybridModel
+from physmend.ude.warmstart import forced_trajectories
+
+
+@dataclass
+class RecordedRates:
+    """Weak-form mismatch of the measured equations along the forced training trajectories.
+
+    Shapes: ``G`` grid points, ``E`` training experiments, ``W`` windows (``G - window + 1``).
+    """
+
+    columns: dict[str, np.ndarray]  # variable (state, input, parameter) -> (G, E) values
+    targets: dict[str, np.ndarray]  # corrected state -> (W, E) mismatch in its equation's units
+    valid: np.ndarray  # (W, E) windows lying wholly inside the records
+    window: int  # grid points per window
+
+    def box(self, values: np.ndarray) -> np.ndarray:
+        """Window means ``(W, E)`` of pointwise values ``(G, E)`` (or a scalar)."""
+        values = np.broadcast_to(np.asarray(values, dtype=float), next(iter(self.columns.values())).shape)
+        c = np.concatenate([np.zeros_like(values[:1]), np.cumsum(values, axis=0)])
+        return (c[self.window:] - c[:-self.window]) / self.window
+
+    def score(self, expr: sp.Expr, state: str) -> tuple[float, float, float]:
+        """``(α, MSE, R²)`` of ``α·expr`` against the recorded mismatch of ``state``'s equation."""
+        from physmend.symbolic._expr import evaluate, mse_r2
+
+        shape = next(iter(self.columns.values())).shape
+        flat = {k: v.ravel() for k, v in self.columns.items() if sp.Symbol(k) in expr.free_symbols}
+        g = self.box(evaluate(expr, flat, n=int(np.prod(shape))).reshape(shape))[self.valid]
+        y = self.targets[state][self.valid]
+        ok = np.isfinite(g)
+        if ok.sum() < 2:
+            return float("nan"), float("inf"), float("-inf")
+        gg = float(g[ok] @ g[ok])
+        alpha = float(g[ok] @ y[ok]) / gg if gg > 0 else 0.0
+        mse, r2 = mse_r2(y[ok], alpha * g[ok])
+        return alpha, mse, r2
+
+
+def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list[str], window_s: float) -> RecordedRates | None:
+    """The recorded mismatch of each equation in ``states`` whose state is measured, averaged over
+    windows of ``window_s`` seconds; None when no state of ``states`` is measured."""
+    from physmend.modeling.compile import lambdify_torch
+
+    batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    dt = float(cfg.train.step)
+    forced = forced_trajectories(problem, batch, hybrid, dt)
+    if forced is None:
+        return None
+    names = problem.model.state_names
+    wanted = [s for s in states if names.index(s) in forced.measured]
+    if not wanted:
+        return None
+    window = max(1, int(round(float(window_s) / dt)))
+    p = hybrid.parameters_for(batch.params[forced.exp_index]).detach()  # (E, n_params)
+    with torch.no_grad():
+        physics = problem.compiled.bind(p)(forced.states, forced.inputs)  # (G, E, n)
+    psyms = [v.symbol for v in problem.model.parameters]
+    columns: dict[str, np.ndarray] = {}
+    for i, n in enumerate(names):
+        columns[n] = forced.states[..., i].numpy()
+    for j, n in enumerate(problem.model.input_names):
+        columns[n] = forced.inputs[..., j].numpy()
+    G = forced.states.shape[0]
+    for k, n in enumerate(problem.model.parameter_names):
+        columns[n] = np.broadcast_to(p[:, k].numpy(), (G, p.shape[0])).copy()
+    rates = RecordedRates(columns=columns, targets={}, valid=np.zeros(0, dtype=bool), window=window)
+    point_valid = forced.valid.numpy().astype(float)
+    rates.valid = rates.box(point_valid) > 1 - 1e-9
+    for s in wanted:
+        i = names.index(s)
+        coef = lambdify_torch(psyms, [problem.model.der_coefficient[s]], "der coefficient")(*p.unbind(-1))[0]
+        a = torch.as_tensor(coef, dtype=p.dtype).expand(p.shape[0]).numpy()  # (E,)
+        mismatch = (forced.rates[..., forced.measured.index(i)] - physics[..., i]).numpy() * a[None, :]
+        rates.targets[s] = rates.box(mismatch)
+    return rates

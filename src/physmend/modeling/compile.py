@@ -44,7 +44,16 @@ def _heaviside(x: torch.Tensor, h0: float = 0.5) -> torch.Tensor:
     return torch.heaviside(x, torch.as_tensor(h0, dtype=x.dtype, device=x.device))
 
 
-_OVERRIDES = {"max": _maximum, "min": _minimum, "heaviside": _heaviside}
+def _sqrt(x: object) -> torch.Tensor:
+    """``sqrt`` whose gradient at 0 is 0 instead of inf (so ``d·sqrt(|d|)`` differentiates to 0,
+    not NaN, where ``d = 0``, e.g. two temperatures starting equal); NaN below 0 as usual."""
+    x = torch.as_tensor(x)
+    pos = x > 0
+    root = torch.sqrt(torch.where(pos, x, torch.ones_like(x)))
+    return torch.where(pos, root, torch.where(x == 0, torch.zeros_like(x), torch.full_like(x, float("nan"))))
+
+
+_OVERRIDES = {"max": _maximum, "min": _minimum, "heaviside": _heaviside, "sqrt": _sqrt}
 
 
 def lambdify_torch(

@@ -8,11 +8,11 @@ complexity); one formula per equation is chosen by a stated rule (or by index), 
 constants are named, and they are re-fitted by simulating the corrected model (multiple
 shooting, the constants estimated as model parameters, no network).
 
-With ``symbolic.select: recorded`` and every kept equation's state measured, the front
+With ``symbolic.select: recorded`` (default) and every kept equation's state measured, the front
 is joined by the mechanism catalogue's forms (each fitted to the target), and the formula is
 chosen by the *recordings* rather than by the network: each candidate is scored against the
 measured equation's mismatch along the forced trajectories (:mod:`physmend.ude.rates`), and the
-one with the fewest constants within ``symbolic.tolerance`` of the best score is taken. A network
+one with the lowest BIC there (constants against independent windows) is taken. A network
 absorbs offsets and leans on look-alike inputs; a formula that merely copies those quirks explains
 the recordings no better than the simple form behind them.
 """
@@ -158,20 +158,25 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
     return out
 
 
-def choose_by_recordings(rates: Any, state: str, front: Any, tolerance: float) -> tuple[int, str, list[tuple[float, float]]]:
-    """Index of the formula with the fewest constants whose recorded-mismatch MSE is within
-    ``1 + tolerance`` of the best (among those, the best score); the sentence why; ``(α, R²)`` per candidate."""
+def choose_by_recordings(rates: Any, state: str, front: Any) -> tuple[int, str, list[tuple[float, float]]]:
+    """The formula with the lowest BIC against the recorded mismatch of ``state``'s equation.
+
+    ``BIC = n·ln(MSE) + k·ln(n)`` with ``k`` the formula's constants (plus its scale) and ``n`` the
+    number of *independent* windows (the sliding windows overlap: one per ``window`` grid points),
+    so a formula buys each extra constant only with a real gain on the recordings. Returns the
+    index, the sentence why, and ``(α, R²)`` per candidate.
+    """
     from physmend.symbolic._expr import n_constants
 
     scores = [rates.score(c.expr, state) for c in front.candidates]
-    best = min(mse for _, mse, _ in scores)
-    ok = [i for i, (_, mse, _) in enumerate(scores) if mse <= (1.0 + tolerance) * best]
-    pick = min(ok, key=lambda i: (n_constants(front.candidates[i].expr), scores[i][1]))
+    n = max(2.0, float(rates.valid.sum()) / rates.window)
+    bic = [n * np.log(max(mse, 1e-300)) + n_constants(c.expr) * np.log(n) if np.isfinite(mse) else np.inf
+           for c, (_, mse, _) in zip(front.candidates, scores)]
+    pick = int(np.argmin(bic))
     c = front.candidates[pick]
-    why = (f"Rule 'recorded': scored against the recorded mismatch of the {state} equation (weak form, "
-           f"{rates.window} grid steps per window), the formula with the fewest constants whose MSE is within "
-           f"{1 + tolerance:.2g}× of the best ({best:.4g}); chose index {pick} ({n_constants(c.expr)} constant(s), "
-           f"recorded R² {scores[pick][2]:.4f}): {c.text}")
+    why = (f"Rule 'recorded': against the recorded mismatch of the {state} equation (windows of {rates.window} grid "
+           f"steps, {n:.0f} independent), the lowest BIC = n·ln(MSE) + k·ln(n); chose index {pick} "
+           f"({n_constants(c.expr)} constant(s), recorded R² {scores[pick][2]:.4f}): {c.text}")
     return pick, why, [(a, r2) for a, _, r2 in scores]
 
 
@@ -266,7 +271,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     y_all = targets(hybrid, problem, traj, kept)
     fronts, chosen, picks = {}, {}, {}
     choices = dict(sc.choice or {})
-    select = str(sc.get("select", "rule"))
+    select = str(sc.get("select", "recorded"))
     if select not in ("recorded", "rule"):
         raise TrackingError(f"symbolic.select must be 'recorded' or 'rule', but got {select!r}")
     rates = None
@@ -285,7 +290,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                                       key=lambda c: (c.complexity, c.mse))
         fronts[state] = front
         if rates is not None and choices.get(state) is None:
-            i, why, recorded_scores[state] = choose_by_recordings(rates, state, front, float(sc.get("tolerance", 0.1)))
+            i, why, recorded_scores[state] = choose_by_recordings(rates, state, front)
             picks[state] = (i, why)
         else:
             picks[state] = choose(front, rule=str(sc.rule), index=choices.get(state))

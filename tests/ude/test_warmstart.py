@@ -113,7 +113,7 @@ def test_no_warm_start_when_no_output_is_a_state(user_project: Path, monkeypatch
 def test_formulas_are_judged_by_the_recordings(room_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``symbolic.select=recorded``: against the recorded mismatch of the air equation, the
     catalogue's one-constant conductance to outside beats a constant and a wrong pairing, and a
-    5-constant polynomial that explains no more loses on parsimony."""
+    5-constant polynomial that explains no more loses on the BIC."""
     import sympy as sp
 
     from physmend.stages.symbolic import catalogue_candidates, choose_by_recordings
@@ -135,7 +135,7 @@ def test_formulas_are_judged_by_the_recordings(room_project: Path, monkeypatch: 
     poly = Candidate(expr=sp.Float(0.5) + sp.Float(14.0) * o - sp.Float(15.2) * a + sp.Float(1e-3) * a**2 + sp.Float(1e-4) * a * o,
                      complexity=15, mse=0.0, r2=0.0, text="polynomial")
     front = ParetoFront(backend="test", target="air.T", inputs=inputs, candidates=cands + [poly])
-    i, why, scores = choose_by_recordings(rates, "air.T", front, 0.1)
+    i, why, scores = choose_by_recordings(rates, "air.T", front)
     chosen = front.candidates[i]
     assert "conductance" in chosen.text and {s.name for s in chosen.expr.free_symbols} == {"air.T", "outside.T"}, why
     alpha, r2 = scores[i]

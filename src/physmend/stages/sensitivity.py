@@ -56,6 +56,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     ranking = rank_inputs(hybrid, jac, kept)
     names = hybrid.spec.input_names
     group_r = cfg.sensitivity.get("group_r")
+    if group_r is not None and (isinstance(group_r, bool) or not isinstance(group_r, (int, float)) or not 0 < group_r <= 1):
+        raise TrackingError(f"sensitivity.group_r must be a correlation in (0, 1] or null, but got {group_r!r}")
     measured = [problem.model.state_names[i] for _, i in measured_states(problem)]
     groups = group_inputs(hybrid, traj, measured, float(group_r) if group_r is not None else 1.1, [n for n, _ in ranking])
     grouped = rank_groups(hybrid, jac, groups, kept)

@@ -275,10 +275,13 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     if select not in ("recorded", "rule"):
         raise TrackingError(f"symbolic.select must be 'recorded' or 'rule', but got {select!r}")
     rates = None
+    window = sc.get("window", 1800.0)
+    if isinstance(window, bool) or not isinstance(window, (int, float)) or not window > 0:
+        raise TrackingError(f"symbolic.window must be a number of seconds > 0, but got {window!r}")
     if select == "recorded":
         from physmend.ude.rates import recorded_rates
 
-        rates = recorded_rates(hybrid, problem, work, kept, float(sc.get("window", 1800.0)))
+        rates = recorded_rates(hybrid, problem, work, kept, float(window))
         if rates is not None and set(rates.targets) != set(kept):
             rates = None  # some kept equation's state is not measured: the network decides
     recorded_scores: dict[str, list[tuple[float, float]]] = {}

@@ -64,6 +64,7 @@ from physmend.ude.train import (
     build_spec,
     fit_figures,
     lr_factor,
+    metrics_of,
     plan_shooting,
     reference,
     rk4_segments,
@@ -275,30 +276,6 @@ def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
         opt.step()  # no gradient: nothing moves; keeps the scheduler's step-order check quiet
         sched.step()
     return lrs
-
-
-def _metrics(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, float]:
-    """Metrics of whole-trajectory outputs ``y (T, B, k)``, computed exactly as ``train._evaluate`` does."""
-    err = y - batch.obs  # (T, B, k), NaN where not measured
-    units = {problem.model.units.get(o, "") for o in problem.model.output_names}
-    if len(units) > 1:
-        scale = torch.nan_to_num(batch.obs[_train_mask(problem, batch)], nan=0.0).std(0).clamp_min(1e-12)
-        scaled = err / scale
-    else:
-        scaled = err
-    tm, vm = _train_mask(problem, batch), _val_mask(problem, batch)
-    metrics = {"val.rmse": _pooled(scaled, vm), "train.rmse": _pooled(scaled, tm)}
-    test = torch.tensor([e.role == "test" for e in problem.experiments])[None, :].expand_as(tm)
-    if bool(test.any()):
-        metrics["test.rmse"] = _pooled(scaled, test)
-    for b, e in enumerate(problem.experiments):
-        for j, out in enumerate(problem.model.output_names):
-            col = err[:, b, j]
-            col = col[torch.isfinite(col)]
-            metrics[f"rmse.{e.id}.{out}"] = float(col.pow(2).mean().sqrt()) if col.numel() else float("nan")
-    if not math.isfinite(metrics["val.rmse"]):
-        raise TrainingDiverged("validation RMSE is not finite (the hybrid trajectory left the finite range)")
-    return metrics
 
 
 # -- the stack -----------------------------------------------------------------------------------------
@@ -515,7 +492,7 @@ class _Stack:
         for j in range(m):
             y_j = y[:, j * b:(j + 1) * b]
             try:
-                out.append((_metrics(self.problem, batch, y_j), y_j))
+                out.append((metrics_of(self.problem, batch, y_j), y_j))
             except TrainingDiverged as exc:
                 out.append(exc)
         return out

@@ -288,15 +288,8 @@ def evaluate(hybrid: HybridModel, problem: Problem, cfg: Any | None = None, *, s
     return _evaluate(hybrid, problem, sim or _sim_opts(cfg))[0]
 
 
-def _evaluate(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor, Batch]:
-    batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
-    with torch.no_grad():
-        p = hybrid.parameters_for(batch.params)
-        try:
-            states = simulate_with(hybrid.rhs(p), batch, batch.u0, sim)
-        except SimulationError as exc:
-            raise TrainingDiverged(f"whole-trajectory simulation of the hybrid failed: {exc}") from exc
-        y = problem.compiled.outputs(states, batch.inputs.at(batch.t), p[None])
+def metrics_of(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, float]:
+    """Metrics (see :func:`evaluate`) of whole-trajectory outputs ``y (T, B, k)`` on ``batch``."""
     err = y - batch.obs  # (T, B, k), NaN where not measured
     units = {problem.model.units.get(o, "") for o in problem.model.output_names}
     if len(units) > 1:
@@ -316,7 +309,19 @@ def _evaluate(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tup
             metrics[f"rmse.{e.id}.{out}"] = float(col.pow(2).mean().sqrt()) if col.numel() else float("nan")
     if not math.isfinite(metrics["val.rmse"]):
         raise TrainingDiverged("validation RMSE is not finite (the hybrid trajectory left the finite range)")
-    return metrics, y, batch
+    return metrics
+
+
+def _evaluate(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor, Batch]:
+    batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    with torch.no_grad():
+        p = hybrid.parameters_for(batch.params)
+        try:
+            states = simulate_with(hybrid.rhs(p), batch, batch.u0, sim)
+        except SimulationError as exc:
+            raise TrainingDiverged(f"whole-trajectory simulation of the hybrid failed: {exc}") from exc
+        y = problem.compiled.outputs(states, batch.inputs.at(batch.t), p[None])
+    return metrics_of(problem, batch, y), y, batch
 
 
 # -- training ----------------------------------------------------------------------------------------

@@ -42,6 +42,7 @@ Interrupted trials
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import os
@@ -51,7 +52,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -737,8 +738,6 @@ class Sweep:
         """Ask for up to ``size`` trials and train those that can share a solve as one stack
         (:func:`physmend.ude.stacked.train_stack`, grouped by ``stack_key``); each is still its own
         trial with its own child run. ``None`` when no trial could be asked (surplus)."""
-        import contextlib
-
         from optuna.trial import TrialState
 
         from physmend.ude.stacked import stack_key
@@ -808,17 +807,9 @@ class Sweep:
         import mlflow
         import optuna
 
-        from physmend.tracking import stage_run
         from physmend.tracking import selection as sel
 
-        tags = {sel.STUDY_TAG: self.study.study_name, sel.TRIAL_NUMBER_TAG: str(trial.number), "physmend.stacked": "true"}
-        with stage_run(
-            self.store, cfg, stage=sel.TRIAL_STAGE, source_run_id=self.parent_run_id,
-            run_name=f"trial-{trial.number:04d}", parent_run_id=self.parent_run_id, tags=tags,
-        ) as run_:
-            holder["run_id"] = run_.run_id
-            trial.set_user_attr(RUN_ID_ATTR, run_.run_id)
-            run_.log_params(values)
+        with self._child_run(trial, values, cfg, holder, {"physmend.stacked": "true"}) as run_:
             for epoch, metrics in reporter.buffered:
                 run_.log_metrics(metrics, step=epoch)
             if isinstance(result, optuna.TrialPruned):
@@ -913,14 +904,14 @@ class Sweep:
             self._mark_child(holder.get("run_id"), "FAIL", error="interrupted (KeyboardInterrupt)")
             raise
 
-    def _train_logged(self, trial: "optuna.Trial", values: dict[str, Any], cfg: DictConfig, problem: "Problem", holder: dict[str, str]) -> Outcome:
-        import mlflow
-        import optuna
-
+    @contextlib.contextmanager
+    def _child_run(self, trial: "optuna.Trial", values: dict[str, Any], cfg: DictConfig, holder: dict[str, str],
+                   extra_tags: dict[str, str] | None = None) -> Iterator[Any]:
+        """The trial's child run under the sweep's parent, its ID recorded in ``holder`` and the trial."""
         from physmend.tracking import stage_run
         from physmend.tracking import selection as sel
 
-        tags = {sel.STUDY_TAG: self.study.study_name, sel.TRIAL_NUMBER_TAG: str(trial.number)}
+        tags = {sel.STUDY_TAG: self.study.study_name, sel.TRIAL_NUMBER_TAG: str(trial.number), **(extra_tags or {})}
         with stage_run(
             self.store, cfg, stage=sel.TRIAL_STAGE, source_run_id=self.parent_run_id,
             run_name=f"trial-{trial.number:04d}", parent_run_id=self.parent_run_id, tags=tags,
@@ -928,6 +919,15 @@ class Sweep:
             holder["run_id"] = run_.run_id
             trial.set_user_attr(RUN_ID_ATTR, run_.run_id)
             run_.log_params(values)
+            yield run_
+
+    def _train_logged(self, trial: "optuna.Trial", values: dict[str, Any], cfg: DictConfig, problem: "Problem", holder: dict[str, str]) -> Outcome:
+        import mlflow
+        import optuna
+
+        from physmend.tracking import selection as sel
+
+        with self._child_run(trial, values, cfg, holder) as run_:
             reporter = Reporter(trial, run_)
             try:
                 result = self.train(cfg, problem, report=reporter)

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,6 +34,28 @@ def sqlite_path(uri: str) -> Path | None:
     return Path(uri[len("sqlite:///") :]).expanduser().resolve()
 
 
+@contextlib.contextmanager
+def _folder_lock(folder: Path | None) -> Iterator[None]:
+    """Exclusive lock on ``folder`` (POSIX ``flock`` on the directory itself: no file is created).
+
+    MLflow creates and migrates a new sqlite database on first use; two processes doing that at
+    once (sweep workers started together) collide. Elsewhere (no folder, no ``fcntl``) a no-op.
+    """
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        fcntl = None  # type: ignore[assignment]
+    if folder is None or fcntl is None:
+        yield
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
 def open_store(tracking_cfg: Any) -> Store:
     """Open (creating if needed) the MLflow store and experiment named by ``tracking.uri/experiment``.
 
@@ -49,12 +74,13 @@ def open_store(tracking_cfg: Any) -> Store:
             )
         uri = f"sqlite:///{db}"
     mlflow.set_tracking_uri(uri)
-    client = MlflowClient(tracking_uri=uri)
-    exp = client.get_experiment_by_name(name)
-    if exp is None:
-        artifact_location = (db.parent / "mlartifacts" / name).as_uri() if db is not None else None
-        exp_id = client.create_experiment(name, artifact_location=artifact_location)
-    else:
+    with _folder_lock(db.parent if db is not None else None):  # workers starting together: one creates
+        client = MlflowClient(tracking_uri=uri)
+        exp = client.get_experiment_by_name(name)
+        if exp is None:
+            artifact_location = (db.parent / "mlartifacts" / name).as_uri() if db is not None else None
+            exp_id = client.create_experiment(name, artifact_location=artifact_location)
+    if exp is not None:
         if exp.lifecycle_stage != "active":
             raise TrackingError(
                 f"tracking.experiment {name!r} is deleted in {uri}; restore it or choose another name"

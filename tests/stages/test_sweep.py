@@ -417,27 +417,37 @@ def test_two_worker_processes_share_one_study(user_project: Path, monkeypatch: p
 def test_grouped_trials_train_as_one_stack_and_each_keeps_its_own_run(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``sweep.group=3``: trials asked three at a time and trained in one batched solve; every
     trial still gets its own child run with its own per-epoch metrics, and its weights reload to
-    the logged validation RMSE."""
+    the logged validation RMSE. While fewer than ``pruner_startup_trials`` (here 2) trials are
+    complete, a group holds only the missing ones (the pruner has nothing to compare with)."""
     from physmend.tracking import load_trial
     from physmend.ude import evaluate
 
     monkeypatch.chdir(user_project)
-    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=4", "sweep.group=3",
-                           "sweep.study_name=grouped")) == 0
+    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=5", "sweep.group=3",
+                           "sweep.pruner_startup_trials=2", "sweep.study_name=grouped")) == 0
     study = load_study(user_project, "grouped")
     trials = study.get_trials()
-    assert [t.state.name for t in trials] == ["COMPLETE"] * 4
+    assert [t.state.name for t in trials[:2]] == ["COMPLETE"] * 2
+    assert {t.state.name for t in trials[2:]} <= {"COMPLETE", "PRUNED"}
+    # groups of 2 (the startup trials), then 3: a trial's start time is its group's
+    starts = [t.datetime_start for t in trials]
+    assert starts[0] <= starts[1] < starts[2] <= starts[3] <= starts[4]
+    assert max(t.datetime_complete for t in trials[:2]) <= starts[2]
     store, _ = open_stores(user_project)
     kids = children(store, study.user_attrs[sw.PARENT_ATTR])
-    assert [k.info.run_name for k in kids] == [f"trial-000{i}" for i in range(4)]
+    assert [k.info.run_name for k in kids] == [f"trial-000{i}" for i in range(5)]
     assert len({t.params["ude.width"] for t in trials}) >= 1
     for trial, kid in zip(trials, kids):
-        assert kid.data.tags["physmend.stacked"] == "true" and kid.data.tags["physmend.trial_state"] == "COMPLETE"
+        assert kid.data.tags["physmend.stacked"] == "true"
+        assert kid.data.tags["physmend.trial_state"] == trial.state.name
         assert kid.data.params == {k: str(v) for k, v in trial.params.items()}
+        if trial.state.name != "COMPLETE":
+            continue
         assert kid.data.metrics["val.rmse"] == pytest.approx(trial.value, rel=1e-12)
         steps = [m.step for m in store.client.get_metric_history(kid.info.run_id, "val.rmse")]
         assert steps == [0, 2, 4, 5]
         assert trial.intermediate_values and set(trial.intermediate_values) == {0, 2, 4}
-    for kid in (kids[0], kids[2]):  # from the first and the second stack
+        # the final metrics come from one batched solve of the stack's models: a reloaded model
+        # evaluated on its own agrees to the solver tolerance
         loaded = load_trial(store, kid.info.run_id)
-        assert evaluate(loaded.hybrid, loaded.problem, loaded.cfg)["val.rmse"] == pytest.approx(kid.data.metrics["val.rmse"], rel=1e-6)
+        assert evaluate(loaded.hybrid, loaded.problem, loaded.cfg)["val.rmse"] == pytest.approx(kid.data.metrics["val.rmse"], rel=1e-3)

@@ -13,7 +13,7 @@ from physmend.config import compose
 from physmend.problem import load_problem
 from physmend.ude import TrainingDiverged, TrainResult, UDEConfigError, evaluate, load_hybrid, train
 from physmend.ude.stacked import _prepare, _Stack, stack_key, train_stack
-from physmend.ude.train import _evaluate, _sim_opts, plan_shooting, reference
+from physmend.ude.train import _evaluate, _sim_opts, checkpoint_problem, plan_shooting, reference
 
 # the oscillator of tests/conftest.py; an explicit solver keeps whole-trajectory evaluations short
 BASE = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=4",
@@ -134,14 +134,18 @@ def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: 
         torch.testing.assert_close(rows[:, 2 * i:2 * i + 2].detach(), own, rtol=1e-12, atol=1e-15)
     # one batched evaluation of all three gives each model's own metrics (to the solver tolerance:
     # the shared adaptive solve takes steps no single model would)
-    batched = stack.evaluate([0, 1, 2], _sim_opts(cfgs[0]))
+    # Checkpoints simulate the train and validation experiments only; `full` adds the test ones.
+    checkpoints, final = stack.evaluate([0, 1, 2], _sim_opts(cfgs[0])), stack.evaluate([0, 1, 2], _sim_opts(cfgs[0]), full=True)
+    assert any(e.role == "test" for e in problem.experiments)
     for i, mem in enumerate(stack.members):
         stack.write_back(i)
-        alone, _, _ = _evaluate(mem.hybrid, problem, _sim_opts(cfgs[0]))
-        got = batched[i][0]
-        assert set(got) == set(alone)
-        for key, value in alone.items():
-            assert got[key] == pytest.approx(value, rel=1e-4), key
+        for batched, of in ((checkpoints, checkpoint_problem(problem)), (final, problem)):
+            alone, _, _ = _evaluate(mem.hybrid, of, _sim_opts(cfgs[0]))
+            got = batched[i][0]
+            assert set(got) == set(alone)
+            for key, value in alone.items():
+                assert got[key] == pytest.approx(value, rel=1e-4), key
+        assert "test.rmse" in final[i][0] and "test.rmse" not in checkpoints[i][0]
     # a failed batched solve falls back to solving each model alone, each failure its own outcome
     outcomes = stack.evaluate([0, 2], {**_sim_opts(cfgs[0]), "method": "no-such-method"})
     assert len(outcomes) == 2 and all(isinstance(o, TrainingDiverged) and "no-such-method" in str(o) for o in outcomes)
@@ -167,17 +171,21 @@ def test_a_stopped_or_diverging_model_leaves_the_others_alone(short_project: Pat
             raise Pruned("trial 1 pruned at epoch 2")
 
     problem = load_problem(cfgs[0])
-    results = train_stack(cfgs, problem, report=report, final_eval="checkpoint")
+    results = train_stack(cfgs, problem, report=report, final_eval="batched", figures=False)
     assert isinstance(results[1], Pruned)
     assert isinstance(results[2], TrainingDiverged)
     assert "training loss became non-finite at epoch 1" in str(results[2])
     ok = results[0]
     assert isinstance(ok, TrainResult)
     assert [r["epoch"] for r in ok.history] == [2.0, 4.0, 6.0]
-    # final_eval="checkpoint": the best batched evaluation's metrics, within solver tolerance of a solo one
-    assert ok.val_rmse == min(r["val.rmse"] for r in ok.history)
-    assert evaluate(ok.hybrid, problem, cfgs[0])["val.rmse"] == pytest.approx(ok.val_rmse, rel=1e-3)
-    assert {"train.rmse", "test.rmse", "estimate.damper.c"} <= set(ok.metrics) and ok.figures
+    # final_eval="batched": the best checkpoint simulated again on every experiment (test ones too),
+    # within solver tolerance of a solo evaluation
+    assert ok.val_rmse == pytest.approx(min(r["val.rmse"] for r in ok.history), rel=1e-4)
+    own = evaluate(ok.hybrid, problem, cfgs[0])
+    assert set(own) == set(ok.metrics) - {"estimate.damper.c"}
+    for key, value in own.items():
+        assert ok.metrics[key] == pytest.approx(value, rel=1e-4), key
+    assert {"train.rmse", "test.rmse", "estimate.damper.c"} <= set(ok.metrics) and ok.figures == {}
     # the survivor trained on, unchanged, after the others left the stack
     alone = train(cfgs[0], problem)
     for key, value in alone.hybrid.state_dict().items():
@@ -204,5 +212,5 @@ def test_shared_settings_must_agree(short_project: Path, monkeypatch: pytest.Mon
     e = _cfg(short_project, "ude.depth=0")
     with pytest.raises(UDEConfigError, match=r"ude\.depth == 0"):
         train_stack([a, e], None)  # type: ignore[arg-type]
-    with pytest.raises(UDEConfigError, match=r"final_eval must be 'own' or 'checkpoint', but got 'best'"):
+    with pytest.raises(UDEConfigError, match=r"final_eval must be 'own' or 'batched', but got 'best'"):
         train_stack([a], None, final_eval="best")  # type: ignore[arg-type]

@@ -200,6 +200,14 @@ class CompiledModel:
             return lambda u, x: self.rhs(u, x, p)
         return BoundRhs(self._affine, p)
 
+    def jacobian(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
+        """``J(u, x) = d(du/dt)/du (B, n, n)`` for parameters ``p (B, n_params)`` where every
+        equation is affine in the states (then ``J = A(p)``); None otherwise."""
+        if self._affine is None or self._affine.rest is not None:
+            return None
+        bound = BoundRhs(self._affine, p)
+        return lambda u, x: bound.A.expand(*u.shape[:-1], u.shape[-1], u.shape[-1])
+
     def observed(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Algebraic (observed) variables, shape ``(..., n_observed)``."""
         return self._call(self._observed, u, x, p)

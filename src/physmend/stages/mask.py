@@ -58,6 +58,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.tracking import TrackingError, open_store, stage_run
     from physmend.ude import evaluate, train
     from physmend.ude.analysis import rank_corrections, training_trajectories
+    from physmend.ude.train import checkpoint_problem
 
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("trial",))
@@ -67,7 +68,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     mc = cfg.mask
     traj = training_trajectories(hybrid, problem, work)
     ranking = rank_corrections(hybrid, traj)
-    full = evaluate(hybrid, problem, work)["val.rmse"]
+    checked = checkpoint_problem(problem)  # val.rmse needs the train and validation experiments only
+    full = evaluate(hybrid, checked, work)["val.rmse"]
     if mc.keep:
         kept = [str(n) for n in mc.keep]
         unknown = [n for n in kept if n not in hybrid.spec.corrected]
@@ -81,7 +83,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         order = [n for n, _ in ranking]
         for k_try in range(1, min(int(mc.max_k), len(order)) + 1):
             hybrid.keep_only(order[:k_try])
-            by_k.append((k_try, evaluate(hybrid, problem, work)["val.rmse"]))
+            by_k.append((k_try, evaluate(hybrid, checked, work)["val.rmse"]))
             if by_k[-1][1] <= (1.0 + float(mc.tolerance)) * full:
                 break
         hybrid.keep_only(hybrid.spec.corrected)

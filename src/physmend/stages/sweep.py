@@ -349,6 +349,7 @@ class Settings:
     max_failures_in_a_row: int
     progress: bool
     group: int = 1
+    figures: bool = True
 
     @classmethod
     def from_cfg(cls, sweep: Any) -> Settings:
@@ -386,6 +387,7 @@ class Settings:
             max_failures_in_a_row=number("max_failures_in_a_row", int, 0),
             progress=bool(sweep.get("progress", True)),
             group=number("group", int, 1) if sweep.get("group") is not None else 1,
+            figures=bool(sweep.get("figures", True)),
         )
 
     def sampler_for(self, trial_index: int) -> "optuna.samplers.BaseSampler":
@@ -720,7 +722,7 @@ class Sweep:
                 _say(bar, f"sweep.timeout of {self.settings.timeout:g} s reached; no new trial is started")
                 break
             if self.settings.group > 1:
-                batch = self.trial_group(bar, min(self.settings.group, self.settings.n_trials - counts.counted - counts.running))
+                batch = self.trial_group(bar, self.group_size(counts))
                 if batch is None:
                     break
                 for outcome in batch:
@@ -733,6 +735,16 @@ class Sweep:
             outcomes.append(outcome)
             self._after(outcome, bar)
         return outcomes
+
+    def group_size(self, counts: Tally) -> int:
+        """Trials to ask together: ``sweep.group``, but while fewer than ``pruner_startup_trials``
+        trials are complete only the missing ones: the pruner has nothing to compare with yet, so a
+        first group would otherwise train every one of its trials to the end."""
+        size = min(self.settings.group, self.settings.n_trials - counts.counted - counts.running)
+        missing = self.settings.pruner_startup_trials - counts.complete
+        if self.settings.pruner != "none" and missing > 0:
+            size = min(size, missing)
+        return max(1, size)
 
     def trial_group(self, bar: Any, size: int) -> list[Outcome] | None:
         """Ask for up to ``size`` trials and train those that can share a solve as one stack
@@ -788,7 +800,8 @@ class Sweep:
         reporters = [Reporter(trial, None) for trial, *_ in members]
         try:
             results: list[Any] = train_stack([cfg for _, _, cfg, _ in members], members[0][3],
-                                             report=lambda i, epoch, row: reporters[i](epoch, row))
+                                             report=lambda i, epoch, row: reporters[i](epoch, row),
+                                             final_eval="batched", figures=self.settings.figures)
         except Exception as exc:  # noqa: BLE001 - the whole stack failed: every trial FAILs, the sweep goes on
             results = [exc] * len(members)
         out: dict[int, Outcome] = {}
@@ -821,7 +834,7 @@ class Sweep:
             value = float(result.val_rmse)
             if not math.isfinite(value):
                 raise FloatingPointError(f"the final val.rmse is not finite ({value})")
-            _log_result(run_, result, step=reporter.last_epoch + 1)
+            _log_result(run_, result, step=reporter.last_epoch + 1, figures=self.settings.figures)
             run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE"})
         return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id)
 
@@ -938,7 +951,7 @@ class Sweep:
             value = float(result.val_rmse)
             if not math.isfinite(value):
                 raise FloatingPointError(f"the final val.rmse is not finite ({value})")
-            _log_result(run_, result, step=reporter.last_epoch + 1)
+            _log_result(run_, result, step=reporter.last_epoch + 1, figures=self.settings.figures)
             run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE"})
         return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id)
 
@@ -1022,8 +1035,8 @@ class Reporter:
             raise optuna.TrialPruned(f"pruned at epoch {epoch}: val.rmse {value:.4g} is worse than the median of earlier trials")
 
 
-def _log_result(run_: Any, result: Any, *, step: int) -> None:
-    """Final metrics (at ``step``, after the per-epoch ones), model files, history, figures."""
+def _log_result(run_: Any, result: Any, *, step: int, figures: bool = True) -> None:
+    """Final metrics (at ``step``, after the per-epoch ones), model files, history, figures (``figures``)."""
     import matplotlib.pyplot as plt
     import mlflow
 
@@ -1042,7 +1055,8 @@ def _log_result(run_: Any, result: Any, *, step: int) -> None:
             mlflow.log_artifacts(tmp)
     run_.log_json(result.history, "history.json")
     for rel, fig in (result.figures or {}).items():
-        run_.log_figure(fig, rel)
+        if figures:
+            run_.log_figure(fig, rel)
         plt.close(fig)
 
 

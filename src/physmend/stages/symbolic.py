@@ -6,7 +6,11 @@ know capacities and generalises across configurations. Inputs: the inputs passed
 sensitivity run plus ``symbolic.parameters``. A back end returns a Pareto front (accuracy vs
 complexity); one formula per equation is chosen by a stated rule (or by index), its numeric
 constants are named, and they are re-fitted by simulating the corrected model (multiple
-shooting, the constants estimated as model parameters, no network).
+shooting, no network: Levenberg–Marquardt on the constants and the segment starts,
+:mod:`physmend.symbolic.refit`; the model's own parameters stay as written, so the re-fitted
+model is exactly the one proposed). The re-fit is kept only where it lowers the validation RMSE
+of whole-trajectory simulations; the corrected model is simulated once with the regression's
+constants (which also checks that it can be simulated at all) and once with the re-fitted ones.
 
 With ``symbolic.select: recorded`` (default) and every kept equation's state measured, the front
 is joined by the mechanism catalogue's forms (each fitted to the target), and the formula is
@@ -83,38 +87,77 @@ def targets(hybrid: Any, problem: Any, traj: Any, kept: list[str]) -> dict[str, 
     return {name: values[:, i].numpy() for i, name in enumerate(kept)}
 
 
-def refit(cfg: Any, problem_cfg: Any, corrections: list, epochs: int) -> tuple[list, dict[str, float]]:
-    """Re-fit the correction constants by training the corrected model (no network) on the data."""
-    from physmend.modeling import Correction, write_corrections
+def corrected_problem(problem_cfg: Any, corrections: list) -> Any:
+    """The problem of ``problem_cfg`` with ``corrections`` attached to their equations (no network);
+    each constant is a model parameter (:func:`physmend.modeling.corrections.constant_parameter_name`)."""
+    from physmend.modeling import write_corrections
     from physmend.problem import load_problem
-    from physmend.ude import train
 
-    with tempfile.TemporaryDirectory(prefix="physmend-refit-") as tmp:
-        path = write_corrections(Path(tmp) / "candidate.yaml", corrections)
+    with tempfile.TemporaryDirectory(prefix="physmend-corrected-") as tmp:
         work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
-        work.model.corrections = str(path)
-        problem = load_problem(work)
-        # constants become uncertain parameters: estimated by multiple shooting, network off
-        from physmend.modeling import apply_corrections, load_model
+        work.model.corrections = str(write_corrections(Path(tmp) / "candidate.yaml", corrections))
+        return load_problem(work)
 
-        base = load_model(str(work.model.builder), work.model.get("options") or {})
-        problem.model = apply_corrections(base, corrections, estimate=True).simplify()
-        from physmend.modeling import compile_model
 
-        problem.compiled = compile_model(problem.model)
-        work.ude.corrected = []
-        work.train.epochs = epochs
-        work.train.estimate_parameters = True
-        work.train.lr = float(cfg.symbolic.refit_lr)
-        result = train(work, problem)
-    fitted = []
-    for c in corrections:
-        owner = problem.model.owner.get(c.state, "")
-        from physmend.modeling.corrections import constant_parameter_name
+def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]:
+    """Whole-trajectory simulation of the corrected model on every experiment (adaptive solver).
 
-        new = {k: result.metrics.get(f"estimate.{constant_parameter_name(owner, c.state, k)}", v) for k, v in c.constants.items()}
-        fitted.append(Correction(state=c.state, term=c.term, constants=new, unit=c.unit, mechanism=c.mechanism))
-    return fitted, result.metrics
+    Returns ``(reference, None)``, or ``(None, why)`` when it cannot be simulated: the solver
+    fails on some experiment, or an output of a training or validation experiment is not finite.
+    """
+    from physmend.simulate import SimulationError
+    from physmend.ude.train import reference
+
+    try:
+        ref = reference(problem, problem_cfg)
+    except SimulationError as exc:
+        return None, str(exc).split(":")[0]
+    y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])  # (T, B, k)
+    checked = [b for b, e in enumerate(problem.experiments) if e.role != "test"]
+    if not bool(torch.isfinite(y[:, checked]).all()):
+        return None, "non-finite outputs"
+    return ref, None
+
+
+def with_parameters(problem: Any, values: dict[str, float]) -> Any:
+    """``problem`` with the parameters ``values`` (name -> value) changed in every experiment."""
+    import dataclasses
+
+    names = problem.compiled.parameter_names
+    experiments = []
+    for e in problem.experiments:
+        params = np.array(e.parameters, dtype=float)
+        for name, value in values.items():
+            params[names.index(name)] = float(value)
+        experiments.append(dataclasses.replace(e, parameters=params))
+    return dataclasses.replace(problem, experiments=experiments)
+
+
+def corrected_metrics(problem: Any, ref: Any) -> dict[str, float]:
+    """Whole-trajectory metrics (``val.rmse`` …, see :func:`physmend.ude.train.metrics_of`) of the
+    corrected model from its simulation ``ref`` (:func:`simulate_corrected`)."""
+    from physmend.ude.train import metrics_of
+
+    with torch.no_grad():
+        y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])
+    return metrics_of(problem, ref.batch, y)
+
+
+def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int) -> tuple[list, Any]:
+    """Re-fit the constants of ``corrections`` through the simulator (multiple shooting, at most
+    ``iterations`` Levenberg–Marquardt steps; :mod:`physmend.symbolic.refit`); the model's other
+    parameters stay as written. Returns the re-fitted corrections and the fit's outcome."""
+    from physmend.modeling import Correction
+    from physmend.modeling.corrections import constant_parameter_name
+    from physmend.symbolic.refit import refit_constants
+
+    names = {(c.state, k): constant_parameter_name(problem.model.owner.get(c.state, ""), c.state, k)
+             for c in corrections for k in c.constants}
+    result = refit_constants(problem, problem_cfg, ref, list(names.values()), max_iterations=iterations)
+    fitted = [Correction(state=c.state, term=c.term, unit=c.unit, mechanism=c.mechanism,
+                         constants={k: result.constants.get(names[(c.state, k)], v) for k, v in c.constants.items()})
+              for c in corrections]
+    return fitted, result
 
 
 def tree_size(expr: sp.Expr) -> int:
@@ -197,48 +240,9 @@ def _correction(problem: Any, state: str, front: Any, idx: int, why: str, column
     return Correction(state=state, term=sp.sstr(expr), constants=consts, unit=unit)
 
 
-def corrected_metrics(problem_cfg: Any, corrections: list) -> dict[str, float]:
-    """Whole-trajectory metrics (``val.rmse`` …) of the model with ``corrections`` and no network."""
-    from physmend.modeling import write_corrections
-    from physmend.problem import load_problem
-    from physmend.ude import HybridModel, evaluate
-    from physmend.ude.hybrid import HybridSpec
-
-    with tempfile.TemporaryDirectory(prefix="physmend-eval-") as tmp:
-        work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
-        work.model.corrections = str(write_corrections(Path(tmp) / "c.yaml", corrections))
-        problem = load_problem(work)
-    spec = HybridSpec(corrected=[], in_states=problem.model.state_names[:1], in_observed=[], in_inputs=[],
-                      in_parameters=[], widths=[], activation="tanh", mean=[0.0], std=[1.0], out_scale=[])
-    return evaluate(HybridModel(problem.compiled, spec, problem.dtype), problem, work)
-
-
-def _unstable(problem_cfg: Any, corrections: list) -> str | None:
-    """Why the corrected model cannot be simulated on the training experiments, or ``None``."""
-    from physmend.modeling import write_corrections
-    from physmend.problem import load_problem
-    from physmend.simulate import SimulationError, make_batch, simulate_batch
-
-    with tempfile.TemporaryDirectory(prefix="physmend-check-") as tmp:
-        work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
-        work.model.corrections = str(write_corrections(Path(tmp) / "c.yaml", corrections))
-        problem = load_problem(work)
-    train_exps = [e for e in problem.experiments if e.role == "train"]
-    batch = make_batch(train_exps, problem.compiled, problem.dtype)
-    try:
-        with torch.no_grad():
-            traj = simulate_batch(problem.compiled, batch, method=str(work.simulate.method),
-                                  rtol=float(work.simulate.rtol), atol=float(work.simulate.atol))
-    except SimulationError as exc:
-        return str(exc).split(":")[0]
-    if not bool(torch.isfinite(traj.outputs).all()):
-        return "non-finite outputs"
-    return None
-
-
 def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run symbolic regression on a sensitivity run (default: the latest); returns the new run ID."""
-    from physmend.modeling import Correction
+    from physmend.modeling.corrections import constant_parameter_name
     from physmend.stages.common import load_source, merged, resolve
     from physmend.symbolic import choose, fit
     from physmend.tracking import TrackingError, get_run, open_store, stage_run
@@ -300,7 +304,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     fallback = ""
     while True:
         corrections = [_correction(problem, state, fronts[state], *picks[state], columns, units, sc, chosen) for state in kept]
-        trouble = _unstable(work, corrections)
+        corrected = corrected_problem(work, corrections)
+        ref, trouble = simulate_corrected(corrected, work)
         if trouble is None:
             break
         movable = [s for s in kept if picks[s][0] > 0 and s not in choices]
@@ -310,21 +315,27 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         i = picks[worst][0] - 1
         fallback += f" Formula {picks[worst][0]} for {worst} made the corrected model fail ({trouble}); fell back to {i}."
         picks[worst] = (i, f"Fallback along the front to index {i} (a more complex formula made the corrected model unstable).")
-    metrics: dict[str, float] = {}
-    if int(sc.refit_epochs) > 0:
-        before = corrected_metrics(work, corrections)
-        from physmend.ude import TrainingDiverged
-
-        try:
-            fitted, after = refit(cfg, work, corrections, int(sc.refit_epochs))
-        except TrainingDiverged as exc:
-            fitted, after = corrections, {"val.rmse": float("inf"), "error": str(exc)}  # type: ignore[dict-item]
+    metrics = before = corrected_metrics(corrected, ref)
+    iterations = int(sc.refit_epochs)
+    if iterations > 0:
+        fitted, result = refit(work, corrected, ref, corrections, iterations)
+        values = {constant_parameter_name(corrected.model.owner.get(c.state, ""), c.state, k): v
+                  for c in fitted for k, v in c.constants.items()}
+        refitted = with_parameters(corrected, values)
+        ref_after, trouble = simulate_corrected(refitted, work)
+        after = corrected_metrics(refitted, ref_after) if ref_after is not None else {"val.rmse": float("inf")}
+        how = (f"{result.iterations} Levenberg–Marquardt step(s) on the multiple-shooting loss "
+               f"{result.loss_before:.4g} → {result.loss_after:.4g}"
+               + ("" if result.converged else f", stopped at symbolic.refit_epochs={iterations} before converging"))
         if after["val.rmse"] < before["val.rmse"]:
             corrections, metrics = fitted, after
-            refit_note = f"constants re-fitted through the simulator (validation RMSE {before['val.rmse']:.4g} → {after['val.rmse']:.4g})"
+            refit_note = (f"constants re-fitted through the simulator ({how}; validation RMSE "
+                          f"{before['val.rmse']:.4g} → {after['val.rmse']:.4g})")
+        elif ref_after is None:
+            refit_note = (f"the constants re-fitted through the simulator ({how}) made the corrected model fail "
+                          f"({trouble}); the regression's constants are kept")
         else:
-            metrics = before
-            refit_note = (f"re-fitting the constants through the simulator did not improve the validation RMSE "
+            refit_note = (f"re-fitting the constants through the simulator ({how}) did not improve the validation RMSE "
                           f"({before['val.rmse']:.4g} → {after['val.rmse']:.4g}); the regression's constants are kept")
     else:
         refit_note = "constants as found by the regression (symbolic.refit_epochs=0)"

@@ -7,8 +7,10 @@ per epoch for twice the time of one). On larger ones arithmetic takes over from 
 and depths to the largest costs part of that, see ``stack_key(architecture=True)``).
 :func:`train_stack` trains ``M`` configurations
 as one multiple-shooting solve over ``M·S`` rows (``S`` segments per model) and evaluates the
-still-active models in one whole-trajectory solve over ``M·B`` rows (``B`` experiments), yet every
-model remains exactly its own trial, as :func:`physmend.ude.train.train` would run it:
+still-active models in one whole-trajectory solve over ``M·B`` rows (``B`` train and validation
+experiments; test experiments only at the end); their derivative-matching warm starts are one
+batched regression over shared forced trajectories. Yet every model remains exactly its own
+trial, as :func:`physmend.ude.train.train` would run it:
 
 * its own architecture ``(width, depth, activation)``: networks are padded to the largest width
   and depth of the stack; padded units have zero weights that never move (their gradients are
@@ -27,7 +29,8 @@ What cannot be identical: batched matrix products (``baddbmm``) and reductions o
 tensors round differently from ``nn.Linear`` on one model (differences ~1e-15 relative per step),
 and the adaptive whole-trajectory solver picks one step size for all rows of a batched
 evaluation, so checkpoint metrics agree with a solo evaluation to the solver tolerance. The final
-metrics of each model come from its own solo evaluation, exactly as ``train()`` computes them.
+metrics of each model come from its own solo evaluation, exactly as ``train()`` computes them, or
+(``final_eval="batched"``, as sweeps use it) from one batched solve of all finished models.
 """
 
 from __future__ import annotations
@@ -62,6 +65,7 @@ from physmend.ude.train import (
     _val_mask,
     artifacts_of,
     build_spec,
+    checkpoint_problem,
     fit_figures,
     lr_factor,
     metrics_of,
@@ -70,7 +74,7 @@ from physmend.ude.train import (
     rk4_segments,
     simulate_with,
 )
-from physmend.ude.warmstart import Forced, segment_starts, warm_start
+from physmend.ude.warmstart import Forced, fit_models, forced_trajectories, segment_starts, warm_start
 
 __all__ = ["SHARED_KEYS", "stack_key", "train_stack"]
 
@@ -166,6 +170,10 @@ class _Net:
     def activation(self, a: torch.Tensor) -> torch.Tensor:
         if len(self.runs) == 1:
             return self.runs[0][0](a)
+        if not torch.is_grad_enabled():  # evaluations: in place, no concatenation (``a`` is a fresh product)
+            for act, start, end in self.runs:
+                a[start:end] = act(a[start:end])
+            return a
         return torch.cat([act(a[start:end]) for act, start, end in self.runs])
 
     def __call__(self, z: torch.Tensor) -> torch.Tensor:
@@ -258,7 +266,6 @@ class _Member:
     history: list[dict[str, float]] = field(default_factory=list)
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best: int = 0
-    best_y: torch.Tensor | None = None  # whole-trajectory outputs (T, B, k) of the best checkpoint
     outcome: BaseException | None = None  # set when the model stops with an error
     done: bool = False
 
@@ -327,7 +334,9 @@ class _Stack:
         self.cont_w = float(cfg.train.continuity_weight)
         self.eq_coef, self.eq_ref = (_equation_scale(problem, self.spec, self.params_seg, ref)
                                      if bool((self.sparsity > 0).any()) and self.spec.corrected else (None, None))
-        self.eval_batch = make_batch(problem.experiments, problem.compiled, dtype)
+        self.checked = checkpoint_problem(problem)  # checkpoints simulate train/validation experiments only
+        self.eval_batch = make_batch(self.checked.experiments, problem.compiled, dtype)
+        self.full_batch = self.eval_batch if self.checked is problem else make_batch(problem.experiments, problem.compiled, dtype)
         self._rows_changed()
 
     # -- bookkeeping ----------------------------------------------------------------------------------
@@ -468,11 +477,32 @@ class _Stack:
                 denom = (eas.sqrt() / bc2_sqrt).add_(self.EPS)
                 p.add_((-(lr_p / bc1)) * ea / denom)
 
+    # -- the warm start, batched ---------------------------------------------------------------------------
+    def warm_fit(self, forced: Forced, *, iterations: int, window: int) -> None:
+        """Every model's derivative-matching warm start (:func:`physmend.ude.warmstart.fit_network`)
+        as one batched regression; padded entries do not move."""
+        m = self.size
+        p_exp = self.ref.batch.params[forced.exp_index]
+        n_fit = 2 * len(self.net.weights) + (1 if self.est_idx else 0)  # the network, then the estimates
+        fit_models(self.problem, forced, self.template.corrected_idx, models=m,
+                   corrections=lambda u, x, p: self._corrections(self.net, m, u, x, p),
+                   parameters=lambda: self._parameters_for(p_exp, self.est_raw, m),
+                   typical=self.net.scale[:, 0, :], params=[p for p, *_ in self.params[:n_fit]],
+                   masks=[mk for _, mk, *_ in self.params[:n_fit]], iterations=iterations, window=window)
+        for p, *_ in self.params:
+            p.grad = None
+
     # -- evaluation ----------------------------------------------------------------------------------------
-    def evaluate(self, positions: list[int], sim: dict[str, Any]) -> list[tuple[dict[str, float], torch.Tensor] | BaseException]:
-        """Whole-trajectory metrics of the models at ``positions`` in one batched solve (per model on failure)."""
+    def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False
+                 ) -> list[tuple[dict[str, float], torch.Tensor] | BaseException]:
+        """Whole-trajectory metrics of the models at ``positions`` in one batched solve (per model on failure).
+
+        Checkpoints simulate the train and validation experiments; ``full`` every experiment
+        (test ones included), as a final evaluation does.
+        """
         m = len(positions)
-        batch = self.eval_batch
+        problem = self.problem if full else self.checked
+        batch = self.full_batch if full else self.eval_batch
         b = batch.size
         rows = torch.tensor(positions, dtype=torch.long)
         rep = torch.arange(b).repeat(m)
@@ -487,21 +517,22 @@ class _Stack:
                 states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
                 y = self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
         except Exception:  # noqa: BLE001 - one model's failure must not end the others: solve each alone
-            return [self._evaluate_alone(i, sim) for i in positions]
+            return [self._evaluate_alone(i, sim, problem) for i in positions]
         out: list[tuple[dict[str, float], torch.Tensor] | BaseException] = []
         for j in range(m):
             y_j = y[:, j * b:(j + 1) * b]
             try:
-                out.append((metrics_of(self.problem, batch, y_j), y_j))
+                out.append((metrics_of(problem, batch, y_j), y_j))
             except TrainingDiverged as exc:
                 out.append(exc)
         return out
 
-    def _evaluate_alone(self, position: int, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor] | BaseException:
+    def _evaluate_alone(self, position: int, sim: dict[str, Any], problem: Problem
+                        ) -> tuple[dict[str, float], torch.Tensor] | BaseException:
         member = self.members[position]
         self.write_back(position)
         try:
-            metrics, y, _ = _evaluate(member.hybrid, self.problem, sim)
+            metrics, y, _ = _evaluate(member.hybrid, problem, sim)
         except Exception as exc:  # noqa: BLE001 - what train() would have raised for this model
             return exc
         return metrics, y
@@ -511,17 +542,41 @@ class _Stack:
 
 
 # -- training ------------------------------------------------------------------------------------------------
-def _prepare(cfg: DictConfig, problem: Problem, ref: Reference, plan: Shooting, slot: int) -> _Member:
-    """One model exactly as train() starts it: seed, spec, network, warm start, segment starts."""
+def _prepare(cfg: DictConfig, problem: Problem, ref: Reference, plan: Shooting, slot: int, *, warm: bool = True) -> _Member:
+    """One model exactly as train() starts it: seed, spec, network, warm start (``warm``; otherwise
+    the stack does it, batched), segment starts."""
     torch.manual_seed(int(cfg.get("seed", 0)))
     spec = build_spec(cfg, problem, ref)
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
     seg0 = _initial_segments(problem, ref, plan)
-    forced = warm_start(hybrid, problem, ref.batch, cfg)
+    forced = warm_start(hybrid, problem, ref.batch, cfg) if warm else None
     if forced is not None:
         seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
     return _Member(slot=slot, cfg=cfg, hybrid=hybrid, forced=forced, seg0=seg0,
                    lrs=_lr_schedule(cfg, warm=forced is not None))
+
+
+def _warm_settings(cfg: DictConfig) -> tuple[str, int, int]:
+    """``(train.warm_start, warm_iterations, window in grid steps)``: as :func:`warm_start` reads them."""
+    tc = cfg.train
+    window = max(1, int(round(float(tc.get("warm_window", 0.0)) / float(tc.step))))
+    return str(tc.get("warm_start", "auto")), int(tc.get("warm_iterations", 400)), window
+
+
+def _shared_warm_start(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting) -> tuple[Forced, int, int] | None:
+    """The warm start every model asks for (``auto``, the same settings): the forced trajectories
+    (computed once: they depend only on the records and the initial parameter estimates, which the
+    stack shares), with each member's segment starts and schedule set as :func:`_prepare` would;
+    None where no output is a state (no warm start, as alone)."""
+    _, iterations, window = _warm_settings(members[0].cfg)
+    forced = forced_trajectories(problem, ref.batch, members[0].hybrid, float(members[0].cfg.train.step))
+    if forced is None:
+        return None
+    for mem in members:
+        mem.forced = forced
+        mem.seg0 = segment_starts(forced, plan.exp_index, plan.starts, mem.seg0)
+        mem.lrs = _lr_schedule(mem.cfg, warm=True)
+    return forced, iterations, window
 
 
 def _check_same_shape(members: list[_Member]) -> None:
@@ -536,22 +591,25 @@ def _check_same_shape(members: list[_Member]) -> None:
 
 
 def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report | None = None,
-                final_eval: str = "own") -> list[TrainResult | BaseException]:
+                final_eval: str = "own", figures: bool = True) -> list[TrainResult | BaseException]:
     """Train one hybrid model per configuration, all in one batched solve (see module docstring).
 
     Args:
         cfgs: one full configuration per model. They may differ in ``seed``, ``ude.width``,
             ``ude.depth``, ``ude.activation``, ``ude.output_scale``, ``train.lr``,
             ``train.weight_decay``, ``train.sparsity`` and the warm-start settings; everything in
-            :data:`SHARED_KEYS` must agree (see :func:`stack_key`).
+            :data:`SHARED_KEYS` must agree (see :func:`stack_key`). Models with the same warm-start
+            settings are warm-started together, as one batched regression.
         problem: the problem every model is trained on.
         report: ``report(i, epoch, row)`` after every evaluation of model ``i`` (``row`` as the
             ``report`` of :func:`physmend.ude.train.train` gets it). An exception it raises stops
             model ``i`` only and becomes its result.
         final_eval: ``"own"``: each model's final metrics come from its own solo evaluation, exactly as
             ``train()`` computes them (a reloaded model reproduces them); costs one solo solve per
-            model. ``"checkpoint"``: the metrics of its best batched evaluation are kept (no extra
-            solve; they agree with a solo evaluation to the solver tolerance).
+            model. ``"batched"``: the best checkpoints of all finished models are simulated on every
+            experiment in one batched solve (the adaptive solver takes the steps the most demanding
+            model needs, so each agrees with its solo evaluation to the solver tolerance).
+        figures: attach the fit figures (one per experiment) to each result.
 
     Returns:
         One entry per configuration, in order: the model's :class:`TrainResult` (as
@@ -562,8 +620,8 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
     Raises:
         UDEConfigError: the configurations differ in a shared setting (the message names the key).
     """
-    if final_eval not in ("own", "checkpoint"):
-        raise UDEConfigError(f"final_eval must be 'own' or 'checkpoint', but got {final_eval!r}")
+    if final_eval not in ("own", "batched"):
+        raise UDEConfigError(f"final_eval must be 'own' or 'batched', but got {final_eval!r}")
     if not cfgs:
         return []
     _check_shared(cfgs)
@@ -572,25 +630,35 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
     plan = plan_shooting(problem, ref.batch, cfg0)
     results: list[TrainResult | BaseException | None] = [None] * len(cfgs)
     members: list[_Member] = []
+    warm_settings = {_warm_settings(cfg) for cfg in cfgs}
+    batched_warm = len(warm_settings) == 1 and next(iter(warm_settings))[0] == "auto"
     for i, cfg in enumerate(cfgs):
         try:
-            members.append(_prepare(cfg, problem, ref, plan, i))
+            members.append(_prepare(cfg, problem, ref, plan, i, warm=not batched_warm))
         except Exception as exc:  # noqa: BLE001 - train(cfg) would have raised it: this trial's outcome
             results[i] = exc
     if members:
         _check_same_shape(members)
-        finished = _run(members, problem, ref, plan, cfg0, report)
+        warm = _shared_warm_start(members, problem, ref, plan) if batched_warm else None
+        finished = _run(members, problem, ref, plan, cfg0, report, warm)
+        sim = _sim_opts(cfg0)
+        done = [mem for mem in finished if mem.outcome is None]
+        final = _final_batched(done, problem, ref, plan, cfg0, sim) if final_eval == "batched" and done else {}
         for mem in finished:
-            results[mem.slot] = mem.outcome if mem.outcome is not None else _result(mem, problem, ref, _sim_opts(cfg0), final_eval)
+            results[mem.slot] = mem.outcome if mem.outcome is not None else _result(mem, problem, ref, sim, final.get(mem.slot), figures)
     assert all(r is not None for r in results)
     return results  # type: ignore[return-value]
 
 
 def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
-         report: Report | None) -> list[_Member]:
-    """The shared epoch loop; returns every member, each with a best checkpoint or an outcome."""
+         report: Report | None, warm: tuple[Forced, int, int] | None = None) -> list[_Member]:
+    """The shared epoch loop (after the batched warm start ``warm``: forced trajectories, iterations,
+    window); returns every member, each with a best checkpoint or an outcome."""
     tc = cfg.train
     stack = _Stack(members, problem, ref, plan, cfg)
+    if warm is not None:
+        forced, iterations, window = warm
+        stack.warm_fit(forced, iterations=iterations, window=window)
     sim = _sim_opts(cfg)
     epochs = int(tc.epochs)
     eval_every = max(1, int(tc.eval_every))
@@ -603,7 +671,7 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
             if isinstance(outcome, BaseException):
                 mem.outcome, mem.done = outcome, True
                 continue
-            metrics, y = outcome
+            metrics, _ = outcome
             row = {"epoch": float(epoch),
                    "loss": float("nan") if loss is None else float(loss[pos]),
                    "fit_loss": float("nan") if fit is None else float(fit[pos]),
@@ -612,7 +680,6 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
             if mem.best is None or metrics["val.rmse"] < mem.best[0]:
                 stack.write_back(pos)
                 mem.best = (metrics["val.rmse"], copy.deepcopy(mem.hybrid.state_dict()), metrics)
-                mem.best_y = y
                 mem.since_best = 0
             else:
                 mem.since_best += 1
@@ -655,18 +722,33 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
     return members
 
 
-def _result(mem: _Member, problem: Problem, ref: Reference, sim: dict[str, Any], final_eval: str) -> TrainResult | BaseException:
-    """The model's best checkpoint as train() returns it: its own HybridModel (re-evaluated on its own)."""
-    assert mem.best is not None and mem.best_y is not None
+def _final_batched(done: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
+                   sim: dict[str, Any]) -> dict[int, tuple[dict[str, float], torch.Tensor] | BaseException]:
+    """Every finished model's best checkpoint simulated on every experiment in one batched solve, by slot."""
+    for mem in done:
+        assert mem.best is not None
+        mem.hybrid.load_state_dict(mem.best[1])
+    stack = _Stack(done, problem, ref, plan, cfg)  # sorted by activation: map results back by slot
+    outcomes = stack.evaluate(list(range(stack.size)), sim, full=True)
+    return {mem.slot: outcome for mem, outcome in zip(stack.members, outcomes)}
+
+
+def _result(mem: _Member, problem: Problem, ref: Reference, sim: dict[str, Any],
+            final: tuple[dict[str, float], torch.Tensor] | BaseException | None, figures: bool) -> TrainResult | BaseException:
+    """The model's best checkpoint as train() returns it: its own HybridModel, evaluated on its own
+    (``final`` None) or with the metrics of the final batched evaluation."""
+    assert mem.best is not None
     hybrid = mem.hybrid
     hybrid.load_state_dict(mem.best[1])
-    if final_eval == "own":
+    if isinstance(final, BaseException):
+        return final
+    if final is None:
         try:
             metrics, y, batch = _evaluate(hybrid, problem, sim)
         except TrainingDiverged as exc:
             return exc
     else:
-        metrics, y = dict(mem.best[2]), mem.best_y
+        metrics, y = dict(final[0]), final[1]
         batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
     for name, value in hybrid.estimates().items():
         metrics[f"estimate.{name}"] = value
@@ -675,6 +757,6 @@ def _result(mem: _Member, problem: Problem, ref: Reference, sim: dict[str, Any],
         metrics=metrics,
         history=mem.history,
         artifacts=artifacts_of(hybrid, metrics),
-        figures=fit_figures(problem, batch, y, ref),
+        figures=fit_figures(problem, batch, y, ref) if figures else {},
         hybrid=hybrid,
     )

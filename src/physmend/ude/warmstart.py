@@ -14,8 +14,10 @@ fit. Models whose outputs are not states get no warm start.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -53,13 +55,28 @@ def measured_states(problem: Problem) -> list[tuple[int, int]]:
     return pairs
 
 
+_SMOOTHED: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+_SMOOTHED_MAX = 64  # cached splines (each a few grids of floats): sweeps and stages refit the same records
+
+
 def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Smoothing spline (smoothness by generalised cross-validation): value and slope on ``grid``."""
+    """Smoothing spline (smoothness by generalised cross-validation): value and slope on ``grid``.
+
+    The result depends only on the three arrays, so it is cached by their contents: every trial of
+    a sweep (and the symbolic stage) smooths the same records, and the GCV fit costs ~0.3 s each.
+    """
     from scipy.interpolate import make_smoothing_spline
 
-    spline = make_smoothing_spline(t, y)
-    g = np.clip(grid, t[0], t[-1])
-    return spline(g), spline.derivative()(g) * ((grid >= t[0]) & (grid <= t[-1]))
+    key = hashlib.sha1(b"".join(np.ascontiguousarray(a, dtype=float).tobytes() + b"|" for a in (t, y, grid))).hexdigest()
+    hit = _SMOOTHED.get(key)
+    if hit is None:
+        spline = make_smoothing_spline(t, y)
+        g = np.clip(grid, t[0], t[-1])
+        hit = (spline(g), spline.derivative()(g) * ((grid >= t[0]) & (grid <= t[-1])))
+        if len(_SMOOTHED) >= _SMOOTHED_MAX:
+            _SMOOTHED.pop(next(iter(_SMOOTHED)))
+        _SMOOTHED[key] = hit
+    return hit[0].copy(), hit[1].copy()
 
 
 def forced_trajectories(problem: Problem, batch: Batch, hybrid: HybridModel, dt: float) -> Forced | None:
@@ -127,19 +144,42 @@ def forced_trajectories(problem: Problem, batch: Batch, hybrid: HybridModel, dt:
 
 
 def fit_network(hybrid: HybridModel, problem: Problem, batch: Batch, forced: Forced, *, iterations: int = 400,
-                lr: float = 0.01, input_sparsity: float = 0.0, window: int = 1) -> dict[str, float]:
+                lr: float = 0.01, window: int = 1) -> dict[str, float]:
     """Fit the network (and jointly estimated parameters) to the measured states' equation mismatch.
 
     Corrections of hidden equations are pulled towards zero (in units of their state's typical
     derivative). Returns ``{"warm.loss": …, "warm.r2": …}`` (R² of the measured mismatch).
     """
-    corrected = hybrid.corrected_idx
+    p_exp = batch.params[forced.exp_index]  # (E, n_params): physics bound once per experiment
+    params = list(hybrid.net.parameters()) + ([hybrid.est_raw] if hybrid.est_idx else [])
+    stats = fit_models(problem, forced, hybrid.corrected_idx, models=1,
+                       corrections=hybrid.corrections, parameters=lambda: hybrid.parameters_for(p_exp),
+                       typical=hybrid.out_scale[None], params=params, iterations=iterations, lr=lr, window=window)
+    return {k: float(v[0]) for k, v in stats.items()}
+
+
+def fit_models(problem: Problem, forced: Forced, corrected: Sequence[int], *, models: int,
+               corrections: Callable[[torch.Tensor, torch.Tensor, torch.Tensor], torch.Tensor],
+               parameters: Callable[[], torch.Tensor], typical: torch.Tensor, params: Sequence[torch.Tensor],
+               masks: Sequence[torch.Tensor | None] | None = None, iterations: int = 400, lr: float = 0.01,
+               window: int = 1) -> dict[str, torch.Tensor]:
+    """The warm-start regression of ``models`` independent hybrid models at once (see :func:`fit_network`).
+
+    Rows are model-major: ``parameters()`` gives ``(models·E, n_params)`` (each model's estimates,
+    ``E`` training experiments), ``corrections(u, x, p)`` maps ``u (G, models·E, n)``,
+    ``x (G, models·E, m)`` to ``(G, models·E, k)`` for the ``k`` corrected equations (state indices
+    ``corrected``); ``typical (models, k)`` is each correction's initial size (state unit / s).
+    Each model's loss depends only on its own rows, and Adam acts element-wise, so every model is
+    fitted exactly as it would be alone; ``masks`` (same layout as ``params``, None = all) zero the
+    gradients of entries that must not move (padding). Returns ``warm.loss`` and ``warm.r2``, ``(models,)``.
+    """
     meas_cols = [corrected.index(i) for i in forced.measured if i in corrected]
     meas_idx = [i for i in forced.measured if i in corrected]
     if not meas_cols:
         return {}
     hidden_cols = [c for c in range(len(corrected)) if c not in meas_cols]
     w = max(1, int(window))
+    m, e = models, forced.valid.shape[1]
 
     def box(a: torch.Tensor) -> torch.Tensor:
         """Mean over windows of ``w`` grid points along time (the weak form of the rate match)."""
@@ -148,44 +188,55 @@ def fit_network(hybrid: HybridModel, problem: Problem, batch: Batch, forced: For
         c = torch.cat([torch.zeros_like(a[:1]), a.cumsum(0)])
         return (c[w:] - c[:-w]) / w
 
-    v_point = forced.valid.to(forced.states.dtype)[..., None]  # (G, E, 1)
+    def per_model(a: torch.Tensor) -> torch.Tensor:
+        """``(G, models·E, c)`` summed over time, experiments and columns: ``(models,)``."""
+        return a.reshape(a.shape[0], m, e, a.shape[-1]).sum(dim=(0, 2, 3))
+
+    v_point = forced.valid.to(forced.states.dtype).repeat(1, m)[..., None]  # (G, models·E, 1)
     v = (box(v_point) > 1 - 1e-9).to(v_point.dtype)
-    count = v.sum().clamp_min(1.0)
-    u, x = forced.states, forced.inputs  # (G, E, n), (G, E, m)
-    rate = forced.rates[..., [forced.measured.index(i) for i in meas_idx]]
-    p_exp = batch.params[forced.exp_index]  # (E, n_params): physics bound once per experiment
-    typical = hybrid.out_scale.clamp_min(1e-30)  # hidden corrections relative to their initial size
+    count = v[:, :e].sum().clamp_min(1.0)  # the same for every model
+    n_point = v_point[:, :e].sum().clamp_min(1.0)
+    u, x = forced.states.repeat(1, m, 1), forced.inputs.repeat(1, m, 1)  # (G, models·E, n), (G, models·E, m)
+    rate = forced.rates[..., [forced.measured.index(i) for i in meas_idx]].repeat(1, m, 1)
+    typical = typical.clamp_min(1e-30).repeat_interleave(e, 0)  # (models·E, k)
 
     def mismatch(p: torch.Tensor) -> torch.Tensor:
-        return rate - hybrid.compiled.bind(p)(u, x)[..., meas_idx]
+        return rate - problem.compiled.bind(p)(u, x)[..., meas_idx]
+
+    def by_model(a: torch.Tensor) -> torch.Tensor:  # (G, models·E, c) -> (G, models, E, c)
+        return a.reshape(a.shape[0], m, e, a.shape[-1])
 
     with torch.no_grad():
-        r0 = box(mismatch(hybrid.parameters_for(p_exp)))
-        r_mean = (r0 * v).sum((0, 1)) / count
-        r_scale = (((r0 - r_mean) ** 2 * v).sum((0, 1)) / count).sqrt().clamp_min(1e-12)
-    params = list(hybrid.net.parameters()) + ([hybrid.est_raw] if hybrid.est_idx else [])
-    opt = torch.optim.Adam(params, lr=lr)
+        r0 = by_model(box(mismatch(parameters())))
+        vm = by_model(v)
+        r_mean = (r0 * vm).sum((0, 2), keepdim=True) / count  # (1, models, 1, q)
+        r_scale = (((r0 - r_mean) ** 2 * vm).sum((0, 2), keepdim=True) / count).sqrt().clamp_min(1e-12)
+    opt = torch.optim.Adam(list(params), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=iterations)
-    loss = torch.zeros(())
+    loss = torch.zeros(m)
     for _ in range(iterations):
         opt.zero_grad(set_to_none=True)
-        p = hybrid.parameters_for(p_exp)
-        corr = hybrid.corrections(u, x, p)
-        loss = (((box(corr[..., meas_cols] - mismatch(p))) / r_scale) ** 2 * v).sum() / (count * len(meas_cols))
+        p = parameters()
+        corr = corrections(u, x, p)
+        res = by_model(box(corr[..., meas_cols] - mismatch(p))) / r_scale
+        loss = per_model((res**2 * vm).flatten(1, 2)) / (count * len(meas_cols))
         if hidden_cols:
-            hidden = (corr[..., hidden_cols] / typical[hidden_cols]) ** 2 * v_point
-            loss = loss + hidden.sum() / (v_point.sum().clamp_min(1.0) * len(hidden_cols))
-        if input_sparsity > 0:  # group lasso on each input's first-layer weights: few inputs
-            loss = loss + input_sparsity * hybrid.net[0].weight.pow(2).sum(0).add(1e-12).sqrt().sum()
-        loss.backward()
+            hidden = (corr[..., hidden_cols] / typical[:, hidden_cols]) ** 2 * v_point
+            loss = loss + per_model(hidden) / (n_point * len(hidden_cols))
+        loss.sum().backward()
+        if masks is not None:
+            for t, mk in zip(params, masks):
+                if mk is not None and t.grad is not None:
+                    t.grad.mul_(mk)
         opt.step()
         sched.step()
     with torch.no_grad():
-        p = hybrid.parameters_for(p_exp)
-        r = box(mismatch(p))
-        res = (r - box(hybrid.corrections(u, x, p)[..., meas_cols])) * v
-        r2 = 1.0 - float(res.pow(2).sum() / (((r - r_mean) * v) ** 2).sum().clamp_min(1e-30))
-    return {"warm.loss": float(loss.detach()), "warm.r2": r2}
+        p = parameters()
+        r = by_model(box(mismatch(p)))
+        res = (r - by_model(box(corrections(u, x, p)[..., meas_cols]))) * vm
+        total = (((r - r_mean) * vm) ** 2).sum(dim=(0, 2, 3)).clamp_min(1e-30)
+        r2 = 1.0 - res.pow(2).sum(dim=(0, 2, 3)) / total
+    return {"warm.loss": loss.detach(), "warm.r2": r2}
 
 
 def segment_starts(forced: Forced, exp_index: torch.Tensor, starts: torch.Tensor, fallback: torch.Tensor) -> torch.Tensor:

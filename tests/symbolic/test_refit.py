@@ -1,0 +1,101 @@
+"""Re-fitting a formula's constants through the simulator (multiple shooting, Levenberg–Marquardt)
+on a real user model: the oscillator whose telemetry carries a quadratic drag the model lacks."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from physmend.config import compose
+from physmend.modeling import Correction
+from physmend.stages.symbolic import corrected_metrics, corrected_problem, refit, simulate_corrected, with_parameters
+from physmend.symbolic.refit import _Shooting, constant_bounds, refit_constants
+
+TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0",
+        "simulate.rtol=1e-6", "simulate.atol=1e-7"]
+DRAG = "c1*cart.v*Abs(cart.v)"  # equation units (N); the telemetry's truth is c1 = -0.9 (conftest.TRUE_DRAG)
+
+
+def _setup(project: Path, c1: float) -> tuple:
+    cfg = compose(TINY, user_config_dir=project / "my_conf")
+    corrections = [Correction(state="cart.v", term=DRAG, constants={"c1": c1}, unit="N")]
+    problem = corrected_problem(cfg, corrections)
+    ref, trouble = simulate_corrected(problem, cfg)
+    assert trouble is None
+    return cfg, corrections, problem, ref
+
+
+def test_constant_bounds_keep_the_sign() -> None:
+    assert constant_bounds(2.0) == (0.1, 40.0)
+    assert constant_bounds(-2.0) == (-40.0, -0.1)
+    assert constant_bounds(0.0) == (-1.0, 1.0)
+
+
+def test_jacobian_matches_autograd(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``2·Jᵀr`` (forward differences, assembled sparse) equals the gradient of the loss by autograd."""
+    monkeypatch.chdir(user_project)
+    cfg, _, problem, ref = _setup(user_project, -0.4)
+    shoot = _Shooting(problem, cfg, ref, ["cart.v_c1"])
+    theta = shoot.params[0, shoot.idx].clone()
+    v = 0.01 * torch.randn(shoot.seg0.shape, generator=torch.Generator().manual_seed(0), dtype=shoot.seg0.dtype)
+    r, solved = shoot.residuals(theta, v)
+    J = shoot.jacobian(theta, v, solved)
+    assert J.shape == (r.numel(), 1 + shoot.F * shoot.n)
+    grad_fd = 2 * (J.T @ r.numpy())
+
+    from physmend.ude.train import rk4_segments
+
+    th = theta.clone().requires_grad_(True)
+    vv = v.clone().requires_grad_(True)
+    p = shoot.params.clone()
+    p[:, shoot.idx] = th
+    u0 = shoot.starts(vv)
+    traj = rk4_segments(problem.compiled.bind(p), u0, shoot.plan)
+    y = problem.compiled.outputs(traj, shoot.plan.x_half[0::2], p[None])
+    res = shoot._residuals_of(u0, traj, y)
+    (res @ res).backward()
+    grad_ad = np.concatenate([th.grad.numpy(), vv.grad[shoot.free].reshape(-1).numpy()])
+    assert float((res @ res).detach()) == pytest.approx(float(r @ r), rel=1e-12)
+    np.testing.assert_allclose(grad_fd, grad_ad, rtol=1e-3, atol=1e-6 * np.abs(grad_ad).max())
+
+
+def test_refit_recovers_the_drag_constant(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """From a third of the true drag, a few steps reach the truth and the validation RMSE drops."""
+    monkeypatch.chdir(user_project)
+    cfg, corrections, problem, ref = _setup(user_project, -0.3)
+    fitted, result = refit(cfg, problem, ref, corrections, 30)
+    c1 = fitted[0].constants["c1"]
+    assert result.converged and 0 < result.iterations < 30, result
+    assert result.loss_after < 0.1 * result.loss_before
+    assert abs(c1 + 0.9) < 0.05, c1
+    assert fitted[0].term == DRAG and fitted[0].state == "cart.v"
+    before = corrected_metrics(problem, ref)
+    refitted = with_parameters(problem, {"cart.v_c1": c1})
+    ref_after, trouble = simulate_corrected(refitted, cfg)
+    assert trouble is None
+    after = corrected_metrics(refitted, ref_after)
+    assert after["val.rmse"] < 0.5 * before["val.rmse"], (before["val.rmse"], after["val.rmse"])
+    # a refit limited to one step says it stopped early and still moves toward the truth
+    one = refit_constants(problem, cfg, ref, ["cart.v_c1"], max_iterations=1)
+    assert one.iterations == 1 and not one.converged and one.loss_after < one.loss_before
+
+
+def test_refit_names_unknown_parameters(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from physmend.symbolic import SymbolicError
+
+    monkeypatch.chdir(user_project)
+    cfg, _, problem, ref = _setup(user_project, -0.3)
+    with pytest.raises(SymbolicError, match=r"\['nope'\] are not parameters of model 'oscillator'"):
+        refit_constants(problem, cfg, ref, ["nope"])
+
+
+def test_a_corrected_model_that_cannot_be_simulated_says_why(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A drag of the wrong sign feeds energy in: the velocity blows up and the solver gives up."""
+    monkeypatch.chdir(user_project)
+    cfg = compose(TINY, user_config_dir=user_project / "my_conf")
+    problem = corrected_problem(cfg, [Correction(state="cart.v", term=DRAG, constants={"c1": 50.0}, unit="N")])
+    ref, trouble = simulate_corrected(problem, cfg)
+    assert ref is None and trouble is not None and "integration failed for experiment" in trouble

@@ -232,11 +232,15 @@ first_trials:
 """
 
 
-def test_diverging_trial_fails_pruned_trial_stops_sweep_goes_on(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
+@pytest.mark.parametrize("pruner", [["sweep.pruner=median"], ["sweep.pruner=halving", "sweep.pruner_min_epochs=2"]])
+def test_diverging_trial_fails_pruned_trial_stops_sweep_goes_on(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys,  # noqa: ANN001
+                                                               pruner: list[str]) -> None:
+    """The trial that learns nothing (lr 1e-7) is worse than the first at epoch 2: the median
+    pruner stops it there, and so does successive halving (rung 2: only the best third goes on)."""
     monkeypatch.chdir(user_project)
     space = write_space(user_project, FAIL_PRUNE_SPACE)
     args = sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=3", "sweep.pruner_startup_trials=1",
-                      "sweep.study_name=fp")
+                      "sweep.study_name=fp", *pruner)
     assert main(args) == 0
     captured = capsys.readouterr()
     study = load_study(user_project, "fp")

@@ -418,6 +418,31 @@ def test_two_worker_processes_share_one_study(user_project: Path, monkeypatch: p
     assert math.isfinite(parent.data.metrics["best.val.rmse"])
 
 
+def test_workers_option_starts_worker_processes_on_one_study(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``sweep.workers=2``: one command, two processes (this one and a started one) share the study;
+    the summary waits for both, and every counted trial has its child run under the one parent."""
+    monkeypatch.chdir(user_project)
+    assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=6", "sweep.pruner=none",
+                           "sweep.workers=2", "sweep.study_name=two")) == 0
+    study = load_study(user_project, "two")
+    counted = [t for t in study.get_trials() if t.state.name == "COMPLETE"]
+    assert len(counted) == 6 and not [t for t in study.get_trials() if t.state.name == "RUNNING"]
+    pids = {t.user_attrs[sw.WORKER_ATTR]["pid"] for t in counted}
+    assert os.getpid() in pids and len(pids) == 2  # this process and the one it started
+    store, _ = open_stores(user_project)
+    (parent,) = sweep_parents(store)
+    assert parent.info.status == "FINISHED"
+    assert sorted(k.info.run_id for k in children(store, parent.info.run_id)) == sorted(t.user_attrs[sw.RUN_ID_ATTR] for t in counted)
+
+
+def test_workers_option_needs_the_command_line(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(user_project)
+    cfg = compose([*TINY, "sweep.space=small", "sweep.workers=2"], user_config_dir=user_project / "my_conf")
+    with pytest.raises(ConfigError, match=r"sweep.workers=2 starts worker processes from the command line"):
+        sw.run(cfg)
+    assert not (user_project / "mlflow.db").exists() and not (user_project / "optuna.db").exists()  # nothing written
+
+
 def test_grouped_trials_train_as_one_stack_and_each_keeps_its_own_run(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``sweep.group=3``: trials asked three at a time and trained in one batched solve; every
     trial still gets its own child run with its own per-epoch metrics, and its weights reload to

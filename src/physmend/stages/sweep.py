@@ -47,7 +47,9 @@ import copy
 import math
 import os
 import re
+import signal
 import socket
+import subprocess
 import sys
 import tempfile
 import threading
@@ -351,6 +353,7 @@ class Settings:
     progress: bool
     group: int = 1
     figures: bool = True
+    workers: int = 1
 
     @classmethod
     def from_cfg(cls, sweep: Any) -> Settings:
@@ -390,6 +393,7 @@ class Settings:
             progress=bool(sweep.get("progress", True)),
             group=number("group", int, 1) if sweep.get("group") is not None else 1,
             figures=bool(sweep.get("figures", True)),
+            workers=number("workers", int, 1) if sweep.get("workers") is not None else 1,
         )
 
     def sampler_for(self, trial_index: int) -> "optuna.samplers.BaseSampler":
@@ -1190,6 +1194,10 @@ def run(
     from physmend.tracking import get_run, open_store
 
     settings = Settings.from_cfg(cfg.sweep)
+    if settings.workers > 1 and overrides is None:
+        raise ConfigError(f"sweep.workers={settings.workers} starts worker processes from the command line "
+                          "(physmend sweep … sweep.workers=N); from Python, start several processes with the same "
+                          "configuration yourself (they share the study)")
     space = load_space(settings.space)
     if overrides is not None:
         check_overrides(space, overrides)
@@ -1206,7 +1214,28 @@ def run(
     tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
     parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
     configs = TrialConfigs(cfg, problem, overrides, config_dir)
-    return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()))
+    helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir)
+    return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
+
+
+def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[str], config_dir: str | Path | None) -> list[Any]:
+    """``count`` more ``physmend sweep`` processes on the same study (one torch thread each), started
+    after this one has created the study and its parent run."""
+    if count < 1:
+        return []
+    cmd = [sys.executable, "-m", "physmend.cli", "sweep", *([source_run_id] if source_run_id else []),
+           *(["--config-dir", str(config_dir)] if config_dir is not None else []),
+           *overrides, "sweep.workers=1", "sweep.progress=false"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(count)]
+
+
+def _join_workers(helpers: list[Any]) -> None:
+    """Wait for the worker processes; say which ended with an error (their stderr is the user's)."""
+    for proc in helpers:
+        rc = proc.wait()
+        if rc != 0:
+            sys.stderr.write(f"sweep worker process {proc.pid} ended with exit status {rc}\n")
 
 
 def _study(storage: Any, name: str, settings: Settings, space: SearchSpace, fingerprint: dict[str, Any]) -> tuple[Any, bool]:
@@ -1224,7 +1253,8 @@ def _study(storage: Any, name: str, settings: Settings, space: SearchSpace, fing
     return study, created
 
 
-def _drive(sweep: Sweep) -> str:
+def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
+    """Run this worker's loop, then wait for the ``helpers`` (worker processes) before the summary."""
     from tqdm import tqdm
 
     bar = tqdm(total=sweep.settings.n_trials, desc=f"sweep {sweep.study.study_name}", unit="trial",
@@ -1232,12 +1262,21 @@ def _drive(sweep: Sweep) -> str:
     status = "FINISHED"
     try:
         sweep.loop(bar)
+        _join_workers(list(helpers))
     except KeyboardInterrupt:
         status = "KILLED"
         _say(bar, "interrupted: the running trial is recorded FAIL (interrupted); rerun the same command to resume")
+        for proc in helpers:  # a Ctrl-C reaches them too: they record their own running trials
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:  # only this process was interrupted: pass it on
+                proc.send_signal(signal.SIGINT)
+                proc.wait()
         raise
     except BaseException as exc:
         status = "FAILED"
+        for proc in helpers:  # their running trials are marked FAIL (interrupted) once their heartbeats go stale
+            proc.terminate()
         from physmend.tracking import ERROR_TAG
 
         sweep.store.client.set_tag(sweep.parent_run_id, ERROR_TAG, f"{type(exc).__name__}: {exc}"[:5000])

@@ -746,11 +746,11 @@ class Sweep:
 
     def group_size(self, counts: Tally) -> int:
         """Trials to ask together: ``sweep.group``, but while fewer than ``pruner_startup_trials``
-        trials are complete only the missing ones: the pruner has nothing to compare with yet, so a
-        first group would otherwise train every one of its trials to the end."""
+        trials are complete only the missing ones: the median pruner has nothing to compare with
+        yet, so a first group would otherwise train every one of its trials to the end."""
         size = min(self.settings.group, self.settings.n_trials - counts.counted - counts.running)
         missing = self.settings.pruner_startup_trials - counts.complete
-        if self.settings.pruner != "none" and missing > 0:
+        if self.settings.pruner == "median" and missing > 0:  # halving compares trials from the first one on
             size = min(size, missing)
         return max(1, size)
 

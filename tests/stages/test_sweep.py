@@ -305,6 +305,13 @@ first_trials:
 """
 
 
+def _as_from_a_shell() -> None:
+    """In the child before exec: SIGINT unblocked and at its default, as a shell starts a command
+    (the test process may have inherited or set another disposition)."""
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGINT])
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_fails_the_trial_and_a_rerun_replaces_it(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
     monkeypatch.chdir(user_project)
     space = write_space(user_project, SLOW_FIRST_SPACE)
@@ -312,7 +319,7 @@ def test_ctrl_c_fails_the_trial_and_a_rerun_replaces_it(user_project: Path, monk
     args = [a for a in sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=2", "sweep.study_name=slow")
             if a != "train.epochs=4"] + ["train.patience=0"]
     proc = subprocess.Popen([sys.executable, "-m", "physmend.cli", *args], cwd=user_project,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_as_from_a_shell)
     try:
         _wait_for(lambda: proc.poll() is not None or _running_with_run(user_project, "slow"), 120, "a running trial")
         assert proc.poll() is None, proc.communicate()[1]

@@ -7,7 +7,8 @@ Shapes: ``u`` states ``(..., n_states)``, ``x`` inputs ``(..., n_inputs)``, ``p`
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import sympy as sp
 import torch
@@ -83,8 +84,10 @@ def _stack(values: list, like: torch.Tensor) -> torch.Tensor:
 class AffineSplit:
     """Rows of ``du/dt`` that are affine in states and inputs: ``A(p) u + B(p) x + c(p)``.
 
-    ``coeffs(p)`` returns the flat list of entries (A row-major, then B, then c); rows listed in
-    ``nonlinear`` are evaluated by ``rest`` instead (their A, B, c entries are zero).
+    The flat entries are A row-major, then B, then c: ``constant`` holds every entry that does not
+    depend on the parameters (most are zeros), ``coeffs(p)`` returns the others, at the flat
+    positions ``varying``. Rows listed in ``nonlinear`` are evaluated by ``rest`` instead (their A,
+    B, c entries are zero).
     """
 
     n_states: int
@@ -92,6 +95,22 @@ class AffineSplit:
     coeffs: Callable[..., list]
     nonlinear: list[int]
     rest: Callable[..., list] | None
+    constant: list[float] = field(default_factory=list)
+    varying: list[int] = field(default_factory=list)
+    _tensors: dict[Any, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict, repr=False)
+
+    def flat(self, p: torch.Tensor) -> torch.Tensor:
+        """All entries for parameters ``p (..., n_params)``: ``(..., n² + n·m + n)``."""
+        key = (p.dtype, p.device)
+        if key not in self._tensors:
+            self._tensors[key] = (torch.tensor(self.constant, dtype=p.dtype, device=p.device),
+                                  torch.tensor(self.varying, dtype=torch.long, device=p.device))
+        const, where = self._tensors[key]
+        base = const.expand(*p.shape[:-1], const.shape[0])
+        if not self.varying:
+            return base.clone()
+        like = torch.zeros(p.shape[:-1], dtype=p.dtype, device=p.device)
+        return base.index_copy(-1, where, _stack(self.coeffs(*p.unbind(-1)), like))
 
 
 def _affine_split(model: SimplifiedModel, u: list, x: list, p: list) -> AffineSplit:
@@ -112,11 +131,13 @@ def _affine_split(model: SimplifiedModel, u: list, x: list, p: list) -> AffineSp
         for k, c in enumerate(row_b):
             entries[n * n + i * m + k] = c
         entries[n * n + n * m + i] = const
-    coeffs = lambdify_torch(p, entries, f"model {model.name!r} affine coefficients")
+    constant = [float(e) if e.is_number and e.is_real else 0.0 for e in entries]
+    varying = [k for k, e in enumerate(entries) if not (e.is_number and e.is_real)]
+    coeffs = lambdify_torch(p, [entries[k] for k in varying], f"model {model.name!r} affine coefficients")
     rest = None
     if nonlinear:
         rest = lambdify_torch(u + x + p, [model.rhs[model.state_names[i]] for i in nonlinear], f"model {model.name!r} derivatives")
-    return AffineSplit(n, m, coeffs, nonlinear, rest)
+    return AffineSplit(n, m, coeffs, nonlinear, rest, constant, varying)
 
 
 class BoundRhs:
@@ -128,8 +149,7 @@ class BoundRhs:
 
     def __init__(self, split: AffineSplit, p: torch.Tensor) -> None:
         n, m = split.n_states, split.n_inputs
-        like = torch.zeros(p.shape[:-1], dtype=p.dtype, device=p.device)
-        flat = _stack(split.coeffs(*p.unbind(-1)), like)
+        flat = split.flat(p)
         self.A = flat[..., : n * n].reshape(*p.shape[:-1], n, n)
         self.B = flat[..., n * n : n * n + n * m].reshape(*p.shape[:-1], n, m)
         self.c = flat[..., n * n + n * m :]

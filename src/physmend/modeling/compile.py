@@ -131,6 +131,7 @@ def _affine_split(model: SimplifiedModel, u: list, x: list, p: list) -> AffineSp
         for k, c in enumerate(row_b):
             entries[n * n + i * m + k] = c
         entries[n * n + n * m + i] = const
+    entries = [sp.sympify(e) for e in entries]
     constant = [float(e) if e.is_number and e.is_real else 0.0 for e in entries]
     varying = [k for k, e in enumerate(entries) if not (e.is_number and e.is_real)]
     coeffs = lambdify_torch(p, [entries[k] for k in varying], f"model {model.name!r} affine coefficients")

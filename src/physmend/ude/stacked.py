@@ -55,6 +55,7 @@ from physmend.ude.train import (
     Shooting,
     TrainingDiverged,
     TrainResult,
+    _chain,
     _equation_scale,
     _evaluate,
     _initial_segments,
@@ -65,6 +66,7 @@ from physmend.ude.train import (
     _val_mask,
     artifacts_of,
     build_spec,
+    chained_starts,
     checkpoint_problem,
     fit_figures,
     lr_factor,
@@ -492,6 +494,20 @@ class _Stack:
         for p, *_ in self.params:
             p.grad = None
 
+    def chain_starts(self) -> None:
+        """After the batched warm start: the segment starts of every warm-started model that asks for
+        it (``train.segment_starts: chained``) chained by its own hybrid, as train() does."""
+        m = self.size
+        want = torch.tensor([mem.forced is not None and _chain(mem.cfg.train) for mem in self.members])
+        if not bool(want.any()):
+            return
+        s, n = self.seg0.shape[1:]
+        with torch.no_grad():
+            p = self._parameters_for(self.params_seg, self.est_raw, m)
+            u0 = torch.where(self.plan.first[None, :, None], self.fixed_first[None], self.seg0).reshape(m * s, n)
+            chained = chained_starts(self._rhs(self.net, m, p), u0, self.plan_rows, models=m).reshape(m, s, n)
+        self.seg0 = torch.where(want[:, None, None], chained, self.seg0)
+
     # -- evaluation ----------------------------------------------------------------------------------------
     def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False
                  ) -> list[tuple[dict[str, float], torch.Tensor] | BaseException]:
@@ -549,9 +565,14 @@ def _prepare(cfg: DictConfig, problem: Problem, ref: Reference, plan: Shooting, 
     spec = build_spec(cfg, problem, ref)
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
     seg0 = _initial_segments(problem, ref, plan)
+    chain = _chain(cfg.train)
     forced = warm_start(hybrid, problem, ref.batch, cfg) if warm else None
     if forced is not None:
         seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
+        if chain:
+            params_seg = ref.batch.params[plan.exp_index]
+            u0 = torch.where(plan.first[:, None], ref.batch.u0[plan.exp_index], seg0)
+            seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), u0, plan)
     return _Member(slot=slot, cfg=cfg, hybrid=hybrid, forced=forced, seg0=seg0,
                    lrs=_lr_schedule(cfg, warm=forced is not None))
 
@@ -659,6 +680,7 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
     if warm is not None:
         forced, iterations, window = warm
         stack.warm_fit(forced, iterations=iterations, window=window)
+        stack.chain_starts()
     sim = _sim_opts(cfg)
     epochs = int(tc.epochs)
     eval_every = max(1, int(tc.eval_every))

@@ -280,6 +280,32 @@ def rk4_segments(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: 
     return torch.stack(out)
 
 
+def chained_starts(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting,
+                   models: int = 1) -> torch.Tensor:
+    """Segment starts with no gaps: every segment after an experiment's first starts where ``rhs``
+    takes the one before it (single shooting on the training grid, fixed-step RK4, no gradients).
+
+    ``u0 (models·S, n)``: starts of ``models`` stacked copies of the plan's ``S`` segments, rows
+    model-major (``rhs`` and ``plan.x_half`` cover all rows); first segments keep theirs. A model whose
+    chained trajectory leaves the finite range keeps its ``u0`` rows. Costs one RK4 pass over all
+    segments per segment of the longest experiment.
+    """
+    S = plan.next_of.shape[0]
+    has = plan.next_of >= 0
+    if not bool(has.any()):
+        return u0.clone()
+    offsets = (torch.arange(models) * S)[:, None]
+    src = (torch.nonzero(has).flatten()[None] + offsets).flatten()
+    dst = (plan.next_of[has][None] + offsets).flatten()
+    depth = int(torch.bincount(plan.exp_index).max())
+    with torch.no_grad():
+        u = u0.clone()
+        for _ in range(depth - 1):
+            u[dst] = rk4_segments(rhs, u, plan)[-1][src]
+        ok = torch.isfinite(u).reshape(models, -1).all(dim=1).repeat_interleave(S)
+        return torch.where(ok[:, None], u, u0)
+
+
 # -- evaluation -------------------------------------------------------------------------------------
 def _pooled(err: torch.Tensor, mask: torch.Tensor) -> float:
     e = err[mask]
@@ -392,6 +418,14 @@ def _equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor
     return coefs(params_seg), ref_size
 
 
+def _chain(tc: Any) -> bool:
+    """``train.segment_starts`` after a warm start: True for ``chained``, False for ``forced``."""
+    mode = str(tc.get("segment_starts", "chained"))
+    if mode not in ("chained", "forced"):
+        raise UDEConfigError(f"train.segment_starts must be 'chained' or 'forced', but got {mode!r}")
+    return mode == "chained"
+
+
 def lr_factor(tc: Any, epochs: int, *, warm: bool) -> Callable[[int], float]:
     """Learning-rate multiplier per epoch: ``train.schedule`` (cosine | none), after a warm start
     ramped up linearly over ``train.warmup_epochs`` so the first steps do not undo it."""
@@ -429,11 +463,13 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     if forced is not None:
         seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
     fixed_first = ref.batch.u0[plan.exp_index]
+    params_seg = ref.batch.params[plan.exp_index]
+    if _chain(tc) and forced is not None:
+        seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), torch.where(plan.first[:, None], fixed_first, seg0), plan)
     state_scale = ref.states[_train_mask(problem, ref.batch)].std(0).clamp_min(1e-3)
     # segment starts are trained as offsets in units of each state's spread (Adam steps are ~lr)
     free = torch.nn.Parameter(torch.zeros_like(seg0))
     out_std = _output_spread(ref.batch.obs[_train_mask(problem, ref.batch)])
-    params_seg = ref.batch.params[plan.exp_index]
     groups = [{"params": list(hybrid.net.parameters()), "weight_decay": float(tc.weight_decay)},
               {"params": [free], "weight_decay": 0.0}]
     if spec.estimated:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import pytest
@@ -10,6 +11,8 @@ import torch
 from physmend.config import compose
 from physmend.problem import load_problem
 from physmend.ude import TrainingDiverged, UDEConfigError, evaluate, load_hybrid, reference, train
+from physmend.ude.hybrid import HybridModel
+from physmend.ude.train import build_spec, chained_starts, plan_shooting, rk4_segments
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=60",
         "train.eval_every=20", "train.lr=0.02", "ude.width=16", "ude.depth=1", "train.patience=0",
@@ -55,6 +58,38 @@ def test_bad_settings_are_clear_errors(user_project: Path, monkeypatch: pytest.M
     cfg = _cfg(user_project, "ude.activation=swish")
     with pytest.raises(UDEConfigError, match=r"ude.activation must be one of .* but got 'swish'"):
         train(cfg, load_problem(cfg))
+    cfg = _cfg(user_project, "train.segment_starts=sideways")
+    with pytest.raises(UDEConfigError, match=r"train.segment_starts must be 'chained' or 'forced', but got 'sideways'"):
+        train(cfg, load_problem(cfg))
+
+
+def test_chained_segment_starts_leave_no_gaps(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each segment after an experiment's first starts exactly where the one before it ends; first
+    segments keep their known initial states; a model whose chain leaves the finite range keeps its starts."""
+    monkeypatch.chdir(user_project)
+    cfg = _cfg(user_project)
+    problem = load_problem(cfg)
+    ref = reference(problem, cfg)
+    hybrid = HybridModel(problem.compiled, build_spec(cfg, problem, ref), problem.dtype)
+    plan = plan_shooting(problem, ref.batch, cfg)
+    has = plan.next_of >= 0
+    assert int(has.sum()) >= 2 and int(plan.first.sum()) >= 2  # several experiments, several segments each
+    u0 = ref.batch.u0[plan.exp_index] + 0.3 * torch.randn(plan.starts.shape[0], len(problem.model.state_names), dtype=problem.dtype)
+    rhs = hybrid.rhs(hybrid.parameters_for(ref.batch.params[plan.exp_index]))
+    gaps_before = (rk4_segments(rhs, u0, plan)[-1][has] - u0[plan.next_of[has]]).abs().max()
+    chained = chained_starts(rhs, u0, plan)
+    end = rk4_segments(rhs, chained, plan)[-1]
+    torch.testing.assert_close(chained[plan.next_of[has]], end[has], rtol=0, atol=1e-12)
+    assert float(gaps_before) > 1e-3
+    torch.testing.assert_close(chained[plan.first], u0[plan.first], rtol=0, atol=0)
+    # two stacked models (rows model-major): the second blows up and keeps its own starts
+    two = torch.cat([u0, u0])
+    blow = lambda u, x: torch.cat([rhs(u[..., : u0.shape[0], :], x[..., : u0.shape[0], :]),  # noqa: E731
+                                   torch.full_like(u[..., u0.shape[0]:, :], float("inf"))], dim=-2)
+    stacked_plan = dataclasses.replace(plan, x_half=plan.x_half.repeat(1, 2, 1))
+    out = chained_starts(blow, two, stacked_plan, models=2)
+    torch.testing.assert_close(out[: u0.shape[0]], chained, rtol=0, atol=1e-12)
+    torch.testing.assert_close(out[u0.shape[0]:], u0, rtol=0, atol=0)
 
 
 def test_divergence_is_reported_not_hidden(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -158,15 +158,24 @@ class BoundRhs:
         self.split = split
 
     def __call__(self, u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        du = torch.einsum("...ij,...j->...i", self.A, u) + self.c
+        du = _matvec(self.A, u) + self.c
         if self.split.n_inputs:
-            du = du + torch.einsum("...ij,...j->...i", self.B, x)
+            du = du + _matvec(self.B, x)
         if self.split.rest is not None:
             lead = torch.broadcast_shapes(u.shape[:-1], x.shape[:-1], self.p.shape[:-1])
             like = torch.zeros(lead, dtype=u.dtype, device=u.device)
             vals = _stack(self.split.rest(*u.unbind(-1), *x.unbind(-1), *self.p.unbind(-1)), like)
             du = _scatter(du, vals, self.split.nonlinear)
         return du
+
+
+def _matvec(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``a (B, r, c)`` times ``v (..., B, c)``: ``(..., B, r)``. One ``bmm`` when ``v`` is ``(B, c)``
+    (a solver step: per-call overhead dominates small models); einsum otherwise (it folds leading
+    dimensions into one product instead of copying ``a`` for each)."""
+    if v.dim() == 2 and a.dim() == 3 and v.shape[0] == a.shape[0]:
+        return torch.bmm(a, v.unsqueeze(-1)).squeeze(-1)
+    return torch.einsum("...ij,...j->...i", a, v)
 
 
 def _scatter(du: torch.Tensor, vals: torch.Tensor, rows: list[int]) -> torch.Tensor:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Sequence
 
 import numpy as np
@@ -23,6 +24,7 @@ class PiecewiseLinear:
             )
         self.knots = knots
         self.values = values
+        self._knot_list = knots.tolist()  # scalar calls (one per solver stage) find their interval by bisection
         k = knots.shape[0]
         if k > 1:
             dt = (knots[1:] - knots[:-1]).clamp_min(1e-300)
@@ -41,6 +43,13 @@ class PiecewiseLinear:
         return idx.reshape(t.shape), tc
 
     def __call__(self, t: torch.Tensor | float) -> torch.Tensor:
+        if (isinstance(t, float) or (isinstance(t, torch.Tensor) and t.ndim == 0 and not t.requires_grad)) \
+                and self.values.shape[-1] and len(self._knot_list) > 1:
+            # one time (the solvers' case): a few tensor operations instead of a vectorised search
+            knots = self._knot_list
+            tc = min(max(float(t), knots[0]), knots[-1])
+            i = min(max(bisect.bisect_right(knots, tc) - 1, 0), len(knots) - 2)
+            return self.values[:, i] + self.slopes[:, i] * (tc - knots[i])
         t = torch.as_tensor(t, dtype=self.knots.dtype, device=self.knots.device)
         if self.values.shape[-1] == 0:
             return self.values[:, 0, :]

@@ -177,11 +177,14 @@ class HybridModel(nn.Module):
         if len(idx) == n and idx == list(range(n)):
             return lambda u, x: physics(u, x) + self.corrections(u, x, p)
 
+        index = torch.tensor(idx, dtype=torch.long, device=p.device)
+
         def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-            du = physics(u, x)
             corr = self.corrections(u, x, p)
-            full = torch.zeros(*corr.shape[:-1], n, dtype=corr.dtype, device=corr.device)
-            full = full.index_copy(-1, torch.tensor(idx, dtype=torch.long, device=corr.device), corr)
-            return du + full
+            du = physics(u, x)
+            if du.shape[:-1] != corr.shape[:-1]:
+                lead = torch.broadcast_shapes(du.shape[:-1], corr.shape[:-1])
+                du, corr = du.expand(*lead, n), corr.expand(*lead, corr.shape[-1])
+            return du.index_add(-1, index, corr)
 
         return f

@@ -413,10 +413,12 @@ class _Stack:
         index = torch.tensor(idx, dtype=torch.long)
 
         def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-            du = physics(u, x)
             corr = self._corrections(net, m, u, x, p)
-            full = torch.zeros(*corr.shape[:-1], n, dtype=corr.dtype, device=corr.device)
-            return du + full.index_copy(-1, index, corr)
+            du = physics(u, x)
+            if du.shape[:-1] != corr.shape[:-1]:
+                lead = torch.broadcast_shapes(du.shape[:-1], corr.shape[:-1])
+                du, corr = du.expand(*lead, n), corr.expand(*lead, corr.shape[-1])
+            return du.index_add(-1, index, corr)
 
         return f
 

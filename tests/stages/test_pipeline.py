@@ -45,6 +45,9 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     # a Pareto index out of range is a clear error naming the rule
     rc, _, err = _run(user_project, capsys, "symbolic", sens_id, "+symbolic.choice={cart.v: 999}", "symbolic.refit_epochs=0")
     assert rc == 2 and "Pareto index must be in [0," in err and "but got 999" in err
+    # a choice for an equation that was not kept is a clear error, not silently ignored
+    rc, _, err = _run(user_project, capsys, "symbolic", sens_id, "+symbolic.choice={cart.a: 0}", "symbolic.refit_epochs=0")
+    assert rc == 2 and "symbolic.choice names ['cart.a'], but the formulas are for the kept corrections [" in err
     rc, out, err = _run(user_project, capsys, "symbolic", sens_id, "symbolic.refit_epochs=20")
     assert rc == 0, err
     sym_id = _last_run_id(out, "symbolic")

@@ -76,12 +76,18 @@ def test_chained_segment_starts_leave_no_gaps(user_project: Path, monkeypatch: p
     assert int(has.sum()) >= 2 and int(plan.first.sum()) >= 2  # several experiments, several segments each
     u0 = ref.batch.u0[plan.exp_index] + 0.3 * torch.randn(plan.starts.shape[0], len(problem.model.state_names), dtype=problem.dtype)
     rhs = hybrid.rhs(hybrid.parameters_for(ref.batch.params[plan.exp_index]))
-    gaps_before = (rk4_segments(rhs, u0, plan)[-1][has] - u0[plan.next_of[has]]).abs().max()
+    with torch.no_grad():
+        gaps_before = (rk4_segments(rhs, u0, plan)[-1][has] - u0[plan.next_of[has]]).abs().max()
     chained = chained_starts(rhs, u0, plan)
     end = rk4_segments(rhs, chained, plan)[-1]
     torch.testing.assert_close(chained[plan.next_of[has]], end[has], rtol=0, atol=1e-12)
     assert float(gaps_before) > 1e-3
     torch.testing.assert_close(chained[plan.first], u0[plan.first], rtol=0, atol=0)
+    # measured-state columns (keep) stay at their given starts; the others are chained
+    part = chained_starts(rhs, u0, plan, keep=[0])
+    torch.testing.assert_close(part[:, 0], u0[:, 0], rtol=0, atol=0)
+    end = rk4_segments(rhs, part, plan)[-1]
+    torch.testing.assert_close(part[plan.next_of[has], 1:], end[has, 1:], rtol=0, atol=1e-12)
     # two stacked models (rows model-major): the second blows up and keeps its own starts
     two = torch.cat([u0, u0])
     blow = lambda u, x: torch.cat([rhs(u[..., : u0.shape[0], :], x[..., : u0.shape[0], :]),  # noqa: E731

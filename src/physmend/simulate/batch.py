@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from physmend.modeling.compile import CompiledModel
-from physmend.simulate.core import odeint
+from physmend.simulate.core import OWN_METHODS, odeint
 from physmend.simulate.inputs import PiecewiseLinear, from_channels
 
 
@@ -101,7 +101,7 @@ def simulate_batch(
     knots = batch.inputs.knots
     inner = knots[(knots > batch.t[0]) & (knots < batch.t[-1])]
     if inner.numel():  # input kinks: step onto them rather than across them
-        options.setdefault("tstops" if method == "rosenbrock23" else "step_t", inner)
+        options.setdefault("tstops" if method in OWN_METHODS else "step_t", inner)
 
     rhs = model.bind(p)
 

@@ -3,16 +3,24 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import torch
 
 from physmend.simulate.errors import SimulationError
+from physmend.simulate.rodas import odeint_rodas
 from physmend.simulate.rosenbrock import odeint_rosenbrock
 
 Rhs = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
 #: physmend's own solvers; every torchdiffeq method name is accepted as well.
-OWN_METHODS = {"rosenbrock23": odeint_rosenbrock}
+#: All take ``first_step``, ``max_steps``, ``tstops`` and ``jacobian`` options.
+OWN_METHODS: dict[str, Callable[..., torch.Tensor]] = {
+    "rosenbrock23": odeint_rosenbrock,
+    "rodas3": partial(odeint_rodas, tableau="rodas3"),
+    "rodas4": odeint_rodas,
+    "rodas4p2": partial(odeint_rodas, tableau="rodas4p2"),
+}
 
 
 def available_methods() -> list[str]:
@@ -38,11 +46,14 @@ def odeint(
         f: right-hand side, ``f(t scalar tensor, u (B, n)) -> (B, n)``.
         u0: initial states of every batch element (experiment or segment).
         t: increasing evaluation times in seconds; ``t[0]`` is the initial time.
-        method: ``"rosenbrock23"`` (stiff, L-stable; default) or any torchdiffeq method
-            (``"dopri5"``, ``"bosh3"``, ``"rk4"`` …).
+        method: ``"rosenbrock23"`` (stiff, L-stable, order 2; default), the stiffly accurate,
+            L-stable Rosenbrock methods ``"rodas3"`` (order 3, as cheap per step as
+            rosenbrock23), ``"rodas4"`` (order 4, Hairer-Wanner) and ``"rodas4p2"`` (order 4,
+            Steinebach: keeps its order where stiff states follow their inputs), or any
+            torchdiffeq method (``"dopri5"``, ``"bosh3"``, ``"rk4"`` …).
         rtol, atol: tolerances of adaptive methods (atol in state units).
-        options: extra solver options (torchdiffeq ``options``; for rosenbrock23:
-            ``first_step``, ``max_steps``).
+        options: extra solver options (torchdiffeq ``options``; for physmend's own methods:
+            ``first_step``, ``max_steps``, ``tstops``, ``jacobian``).
         names: a name per batch element, used in error messages.
 
     Raises:

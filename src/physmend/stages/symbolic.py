@@ -275,6 +275,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     y_all = targets(hybrid, problem, traj, kept)
     fronts, chosen, picks = {}, {}, {}
     choices = dict(sc.choice or {})
+    stray = sorted(set(choices) - set(kept))
+    if stray:
+        raise TrackingError(f"symbolic.choice names {stray}, but the formulas are for the kept corrections {list(kept)} "
+                            "(choose a Pareto index for one of those)")
     select = str(sc.get("select", "recorded"))
     if select not in ("recorded", "rule"):
         raise TrackingError(f"symbolic.select must be 'recorded' or 'rule', but got {select!r}")

@@ -507,7 +507,8 @@ class _Stack:
         with torch.no_grad():
             p = self._parameters_for(self.params_seg, self.est_raw, m)
             u0 = torch.where(self.plan.first[None, :, None], self.fixed_first[None], self.seg0).reshape(m * s, n)
-            chained = chained_starts(self._rhs(self.net, m, p), u0, self.plan_rows, models=m).reshape(m, s, n)
+            keep = next(mem.forced.measured for mem in self.members if mem.forced is not None)
+            chained = chained_starts(self._rhs(self.net, m, p), u0, self.plan_rows, models=m, keep=keep).reshape(m, s, n)
         self.seg0 = torch.where(want[:, None, None], chained, self.seg0)
 
     # -- evaluation ----------------------------------------------------------------------------------------
@@ -574,7 +575,7 @@ def _prepare(cfg: DictConfig, problem: Problem, ref: Reference, plan: Shooting, 
         if chain:
             params_seg = ref.batch.params[plan.exp_index]
             u0 = torch.where(plan.first[:, None], ref.batch.u0[plan.exp_index], seg0)
-            seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), u0, plan)
+            seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), u0, plan, keep=forced.measured)
     return _Member(slot=slot, cfg=cfg, hybrid=hybrid, forced=forced, seg0=seg0,
                    lrs=_lr_schedule(cfg, warm=forced is not None))
 

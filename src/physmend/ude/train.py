@@ -16,7 +16,7 @@ import dataclasses
 import io
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -25,6 +25,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch, odeint
+from physmend.simulate.core import OWN_METHODS
 from physmend.ude.hybrid import HybridModel, HybridSpec, UDEConfigError, match_names
 from physmend.ude.warmstart import segment_starts, warm_start
 
@@ -71,7 +72,7 @@ def _kinks(batch: Batch, method: str) -> dict[str, Any]:
     inner = knots[(knots > batch.t[0]) & (knots < batch.t[-1])]
     if not inner.numel():
         return {}
-    return {"tstops": inner} if method == "rosenbrock23" else {"step_t": inner}
+    return {"tstops": inner} if method in OWN_METHODS else {"step_t": inner}
 
 
 def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], batch: Batch, u0: torch.Tensor, sim: dict[str, Any],
@@ -86,7 +87,7 @@ def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], bat
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return rhs(u, batch.inputs(t))
 
-    if jac is not None and sim["method"] == "rosenbrock23" and "jacobian" not in options:
+    if jac is not None and sim["method"] in OWN_METHODS and "jacobian" not in options:
         options["jacobian"] = lambda t, u: jac(u, batch.inputs(t))
 
     return odeint(f, u0, batch.t, method=sim["method"], rtol=sim["rtol"], atol=sim["atol"], options=options, names=batch.ids)
@@ -281,14 +282,16 @@ def rk4_segments(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: 
 
 
 def chained_starts(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting,
-                   models: int = 1) -> torch.Tensor:
-    """Segment starts with no gaps: every segment after an experiment's first starts where ``rhs``
-    takes the one before it (single shooting on the training grid, fixed-step RK4, no gradients).
+                   models: int = 1, keep: Sequence[int] = ()) -> torch.Tensor:
+    """Segment starts chained by ``rhs``: every segment after an experiment's first starts where
+    ``rhs`` takes the one before it (fixed-step RK4 on the training grid, no gradients), except in
+    the state columns ``keep`` (e.g. measured states, which start at their records).
 
-    ``u0 (models·S, n)``: starts of ``models`` stacked copies of the plan's ``S`` segments, rows
-    model-major (``rhs`` and ``plan.x_half`` cover all rows); first segments keep theirs. A model whose
-    chained trajectory leaves the finite range keeps its ``u0`` rows. Costs one RK4 pass over all
-    segments per segment of the longest experiment.
+    With ``keep`` empty this is single shooting: no gaps at all. ``u0 (models·S, n)``: starts of
+    ``models`` stacked copies of the plan's ``S`` segments, rows model-major (``rhs`` and
+    ``plan.x_half`` cover all rows); first segments keep theirs. A model whose chained trajectory
+    leaves the finite range keeps its ``u0`` rows. Costs one RK4 pass over all segments per segment
+    of the longest experiment.
     """
     S = plan.next_of.shape[0]
     has = plan.next_of >= 0
@@ -300,8 +303,10 @@ def chained_starts(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0
     depth = int(torch.bincount(plan.exp_index).max())
     with torch.no_grad():
         u = u0.clone()
+        cols = torch.tensor([i for i in range(u.shape[-1]) if i not in set(keep)], dtype=torch.long)
         for _ in range(depth - 1):
-            u[dst] = rk4_segments(rhs, u, plan)[-1][src]
+            end = rk4_segments(rhs, u, plan)[-1][src]
+            u[dst[:, None], cols[None, :]] = end[:, cols]
         ok = torch.isfinite(u).reshape(models, -1).all(dim=1).repeat_interleave(S)
         return torch.where(ok[:, None], u, u0)
 
@@ -465,7 +470,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     fixed_first = ref.batch.u0[plan.exp_index]
     params_seg = ref.batch.params[plan.exp_index]
     if _chain(tc) and forced is not None:
-        seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), torch.where(plan.first[:, None], fixed_first, seg0), plan)
+        seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), torch.where(plan.first[:, None], fixed_first, seg0), plan,
+                              keep=forced.measured)
     state_scale = ref.states[_train_mask(problem, ref.batch)].std(0).clamp_min(1e-3)
     # segment starts are trained as offsets in units of each state's spread (Adam steps are ~lr)
     free = torch.nn.Parameter(torch.zeros_like(seg0))

@@ -14,6 +14,7 @@ fit. Models whose outputs are not states get no warm start.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass
@@ -54,6 +55,11 @@ def measured_states(problem: Problem) -> list[tuple[int, int]]:
             pairs.append((j, names.index(expr.name)))
     return pairs
 
+
+#: grid points per weak-form window in the warm-start regression: longer windows use every k-th point
+#: of the training grid (the rates are window means, smooth on that scale; the network is evaluated
+#: on 1/k of the rows)
+QUADRATURE_POINTS = 10
 
 _SMOOTHED: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 _SMOOTHED_MAX = 64  # cached splines (each a few grids of floats): sweeps and stages refit the same records
@@ -179,6 +185,11 @@ def fit_models(problem: Problem, forced: Forced, corrected: Sequence[int], *, mo
         return {}
     hidden_cols = [c for c in range(len(corrected)) if c not in meas_cols]
     w = max(1, int(window))
+    thin = max(1, w // QUADRATURE_POINTS)
+    if thin > 1:  # window means from every thin-th grid point: the same weak form, a fraction of the rows
+        forced = dataclasses.replace(forced, states=forced.states[::thin], rates=forced.rates[::thin],
+                                     inputs=forced.inputs[::thin], valid=forced.valid[::thin])
+        w = max(1, round(w / thin))
     m, e = models, forced.valid.shape[1]
 
     def box(a: torch.Tensor) -> torch.Tensor:

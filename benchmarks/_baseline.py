@@ -57,7 +57,7 @@ def run(cfg: Any, problem: Any, target: Target, *, cap_s: float, eval_every: int
     import torchdiffeq
 
     from physmend.ude.hybrid import HybridModel
-    from physmend.ude.train import TrainingDiverged, build_spec, evaluate, reference
+    from physmend.ude.train import TrainingDiverged, build_spec, checkpoint_problem, evaluate, reference
 
     torch.set_num_threads(1)
     torch.manual_seed(seed)
@@ -90,7 +90,7 @@ def run(cfg: Any, problem: Any, target: Target, *, cap_s: float, eval_every: int
             nfe_total += clock["nfe"] - nfe0
             if epoch % eval_every == 0:
                 t1 = time.perf_counter()
-                val = evaluate(hybrid, problem, cfg)["val.rmse"]
+                val = evaluate(hybrid, checkpoint_problem(problem), cfg)["val.rmse"]  # as physmend's checkpoints
                 eval_s += time.perf_counter() - t1
                 history.append({"epoch": epoch, "wall_s": time.perf_counter() - start, "val.rmse": val, "loss": float(loss.detach())})
                 if target.met(val):

@@ -70,13 +70,16 @@ def run(cfg: Any, problem: Any, target: Target, *, cap_s: float, eval_every: int
 
 
 def eval_seconds(cfg: Any, problem: Any) -> float:
-    """Wall time (s) of one whole-trajectory ``evaluate`` of a freshly initialised hybrid."""
+    """Wall time (s) of one checkpoint evaluation (whole trajectories of the training and validation
+    experiments, as ``train`` checks them; test experiments are simulated once, at the end) of a
+    freshly initialised hybrid."""
     from physmend.ude.hybrid import HybridModel
-    from physmend.ude.train import build_spec, evaluate, reference
+    from physmend.ude.train import build_spec, checkpoint_problem, evaluate, reference
 
     hybrid = HybridModel(problem.compiled, build_spec(cfg, problem, reference(problem, cfg)), problem.dtype)
+    checked = checkpoint_problem(problem)
     t0 = time.perf_counter()
-    evaluate(hybrid, problem, cfg)
+    evaluate(hybrid, checked, cfg)
     return time.perf_counter() - t0
 
 

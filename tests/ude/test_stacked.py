@@ -14,6 +14,7 @@ from physmend.problem import load_problem
 from physmend.ude import TrainingDiverged, TrainResult, UDEConfigError, evaluate, load_hybrid, train
 from physmend.ude.stacked import _prepare, _Stack, stack_key, train_stack
 from physmend.ude.train import _evaluate, _sim_opts, checkpoint_problem, plan_shooting, reference
+from physmend.ude.warmstart import WARM_STATS, forget_warm_starts
 
 # the oscillator of tests/conftest.py; an explicit solver keeps whole-trajectory evaluations short
 BASE = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=4",
@@ -63,6 +64,7 @@ def test_each_model_of_a_stack_trains_exactly_as_alone(short_project: Path, monk
     assert sorted(seen) == [(i, e) for i in range(3) for e in (0, 2, 4)]
     for cfg, result in zip(cfgs, results):
         assert isinstance(result, TrainResult), result
+        forget_warm_starts()  # the model alone fits its own warm start (not the stack's stored one)
         alone = train(cfg, problem)
         # own architecture, exactly: the same state_dict keys and shapes as a model trained alone
         ours, theirs = result.hybrid.state_dict(), alone.hybrid.state_dict()
@@ -96,6 +98,31 @@ def test_each_model_of_a_stack_trains_exactly_as_alone(short_project: Path, monk
         path.write_bytes(content if isinstance(content, bytes) else content.encode())
     rebuilt = load_hybrid(cfgs[1], problem, tmp_path)
     assert evaluate(rebuilt, problem, cfgs[1])["val.rmse"] == pytest.approx(result.val_rmse, rel=1e-9)
+
+
+def test_a_warm_start_is_fitted_once_per_network_and_reused(short_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Trials that differ only in training settings (learning rate, weight decay) share their warm
+    start: it is fitted once per process and reused, and reusing it changes nothing."""
+    monkeypatch.chdir(short_project)
+    forget_warm_starts()
+    same = ["seed=1", "ude.width=8", "ude.depth=1", "ude.activation=tanh"]
+    cfgs = [_cfg(short_project, *same, "train.lr=0.02"), _cfg(short_project, *same, "train.lr=0.005", "train.weight_decay=1e-3"),
+            _cfg(short_project, *TRIALS[1])]
+    problem = load_problem(cfgs[0])
+    before = dict(WARM_STATS)
+    first = train_stack(cfgs, problem, figures=False)
+    assert WARM_STATS["fitted"] - before["fitted"] == 2 and WARM_STATS["reused"] - before["reused"] == 1
+    again = train_stack(cfgs, problem, figures=False)
+    assert WARM_STATS["fitted"] - before["fitted"] == 2 and WARM_STATS["reused"] - before["reused"] == 4
+    for a, b in zip(first, again):
+        assert isinstance(a, TrainResult) and isinstance(b, TrainResult)
+        assert a.val_rmse == b.val_rmse and repr(a.history) == repr(b.history)  # repr: NaN losses at epoch 0
+    # the two trials that share a network started from the same warm start, then trained differently
+    assert repr(first[0].history[0]) == repr(first[1].history[0]) and first[0].history[-1] != first[1].history[-1]
+    # train() alone reuses it as well, with the same outcome
+    alone = train(cfgs[2], problem)
+    assert WARM_STATS["fitted"] - before["fitted"] == 2
+    assert alone.history[0]["val.rmse"] == pytest.approx(first[2].history[0]["val.rmse"], rel=1e-3)
 
 
 def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: Path,

@@ -76,7 +76,7 @@ from physmend.ude.train import (
     rk4_segments,
     simulate_with,
 )
-from physmend.ude.warmstart import Forced, fit_models, forced_trajectories, segment_starts, warm_start
+from physmend.ude.warmstart import Forced, fit_models, forced_trajectories, recall, remember, segment_starts, warm_key, warm_start
 
 __all__ = ["SHARED_KEYS", "stack_key", "train_stack"]
 
@@ -603,6 +603,29 @@ def _shared_warm_start(members: list[_Member], problem: Problem, ref: Reference,
     return forced, iterations, window
 
 
+def _warm_fit(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
+              forced: Forced, iterations: int, window: int) -> None:
+    """Every member's warm start: one batched regression of the models this process has not
+    warm-started before (:func:`physmend.ude.warmstart.warm_key`: same network as initialised, data
+    and settings); the others reuse the stored result, which is what the regression would give."""
+    p_exp = ref.batch.params[forced.exp_index]
+    keys = [warm_key(mem.hybrid, forced, p_exp, iterations, window) for mem in members]
+    todo: dict[str, _Member] = {}
+    for mem, key in zip(members, keys):
+        if key not in todo and not recall(key, mem.hybrid):
+            todo[key] = mem
+    if todo:
+        sub = _Stack(list(todo.values()), problem, ref, plan, cfg)
+        sub.warm_fit(forced, iterations=iterations, window=window)
+        for pos in range(sub.size):
+            sub.write_back(pos)
+        for key, mem in todo.items():
+            remember(key, mem.hybrid)
+    for mem, key in zip(members, keys):
+        if key in todo and todo[key] is not mem:
+            recall(key, mem.hybrid)
+
+
 def _check_same_shape(members: list[_Member]) -> None:
     a = members[0].hybrid.spec
     for mem in members[1:]:
@@ -679,10 +702,10 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
     """The shared epoch loop (after the batched warm start ``warm``: forced trajectories, iterations,
     window); returns every member, each with a best checkpoint or an outcome."""
     tc = cfg.train
+    if warm is not None:
+        _warm_fit(members, problem, ref, plan, cfg, *warm)
     stack = _Stack(members, problem, ref, plan, cfg)
     if warm is not None:
-        forced, iterations, window = warm
-        stack.warm_fit(forced, iterations=iterations, window=window)
         stack.chain_starts()
     sim = _sim_opts(cfg)
     epochs = int(tc.epochs)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import math
 from dataclasses import dataclass
 from collections.abc import Callable, Sequence
@@ -262,6 +263,52 @@ def segment_starts(forced: Forced, exp_index: torch.Tensor, starts: torch.Tensor
     return out
 
 
+# -- reuse ------------------------------------------------------------------------------------------
+#: warm-start results of this process, by :func:`warm_key`: sweep trials that share an architecture and
+#: a seed (they differ in learning rate, weight decay …) start from the same fitted network
+_WARM: dict[str, tuple[Any, dict[str, torch.Tensor]]] = {}
+_WARM_MAX = 256
+#: how many warm starts this process fitted and how many it reused (for tests and benchmarks)
+WARM_STATS = {"fitted": 0, "reused": 0}
+
+
+def warm_key(hybrid: HybridModel, forced: Forced, params: torch.Tensor, iterations: int, window: int) -> str:
+    """Everything a warm start's result depends on, hashed: the hybrid as initialised (spec,
+    weights, estimates, normalisation, output mask), the forced trajectories, the experiments'
+    parameters ``params (E, n_params)``, the regression settings, and the compiled model itself."""
+    h = hashlib.sha1()
+    h.update(json.dumps(hybrid.spec.to_dict(), sort_keys=True, default=str).encode())
+    tensors = [t for _, t in sorted(hybrid.state_dict().items())] + [hybrid.out_mask]
+    tensors += [forced.states, forced.rates, forced.inputs, forced.valid, params]
+    for t in tensors:
+        h.update(np.ascontiguousarray(t.detach().cpu().numpy()).tobytes() + b"|")
+    h.update(f"{iterations}|{window}|{forced.dt}|{forced.measured}|{id(hybrid.compiled)}".encode())
+    return h.hexdigest()
+
+
+def recall(key: str, hybrid: HybridModel) -> bool:
+    """Load the warm start stored under ``key`` into ``hybrid``; False when there is none."""
+    hit = _WARM.get(key)
+    if hit is None or hit[0] is not hybrid.compiled:
+        return False
+    hybrid.load_state_dict(hit[1])
+    WARM_STATS["reused"] += 1
+    return True
+
+
+def remember(key: str, hybrid: HybridModel) -> None:
+    """Store ``hybrid``'s warm-started state under ``key`` (the oldest entry goes when full)."""
+    if len(_WARM) >= _WARM_MAX:
+        _WARM.pop(next(iter(_WARM)))
+    _WARM[key] = (hybrid.compiled, {k: v.detach().clone() for k, v in hybrid.state_dict().items()})
+    WARM_STATS["fitted"] += 1
+
+
+def forget_warm_starts() -> None:
+    """Drop every stored warm start (tests that compare two ways of computing one)."""
+    _WARM.clear()
+
+
 def warm_start(hybrid: HybridModel, problem: Problem, batch: Batch, cfg: Any) -> Forced | None:
     """Collocation warm start per ``cfg.train.warm_start`` (``auto`` | ``none``); the forced trajectories or None."""
     mode = str(cfg.train.get("warm_start", "auto"))
@@ -275,5 +322,9 @@ def warm_start(hybrid: HybridModel, problem: Problem, batch: Batch, cfg: Any) ->
     if forced is None:
         return None
     window = max(1, int(round(float(cfg.train.get("warm_window", 0.0)) / float(cfg.train.step))))
-    fit_network(hybrid, problem, batch, forced, iterations=int(cfg.train.get("warm_iterations", 400)), window=window)
+    iterations = int(cfg.train.get("warm_iterations", 400))
+    key = warm_key(hybrid, forced, batch.params[forced.exp_index], iterations, window)
+    if not recall(key, hybrid):
+        fit_network(hybrid, problem, batch, forced, iterations=iterations, window=window)
+        remember(key, hybrid)
     return forced

@@ -118,7 +118,9 @@ def count_flops(cfg: Any, problem: Any) -> dict[str, Any]:
 def _rows_of_run(cfg: Any, problem: Any, epochs: int, n_inputs: int, first_width: int) -> float:
     """Rows sent through the network with gradients enabled during ``train`` for ``epochs`` epochs."""
     from physmend.ude.train import train
+    from physmend.ude.warmstart import forget_warm_starts
 
+    forget_warm_starts()  # each pass fits its own warm start (a stored one would hide its rows)
     short = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     short.train.epochs, short.train.eval_every, short.train.patience = epochs, epochs, 0
     with count_network_rows(n_inputs, first_width) as counted:

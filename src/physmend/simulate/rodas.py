@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import torch
 
 from physmend.simulate.errors import SimulationError
-from physmend.simulate.rosenbrock import _check_finite
+from physmend.simulate.rosenbrock import _check_finite, check_times
 
 Rhs = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -334,10 +334,7 @@ def odeint_rodas(
     :class:`SimulationError` naming the experiment (``names[b]``) and the time (s) when
     integration fails.
     """
-    if t.ndim != 1 or t.numel() < 1:
-        raise SimulationError(f"evaluation times must be a 1-D tensor, but got shape {tuple(t.shape)}")
-    if t.numel() > 1 and not bool((t[1:] >= t[:-1]).all()):
-        raise SimulationError("evaluation times must be non-decreasing")
+    check_times(t)
     names = names or [str(i) for i in range(u0.shape[0])]
     t0, t_final = float(t[0]), float(t[-1])
     if t.numel() == 1:

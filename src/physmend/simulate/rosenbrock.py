@@ -59,10 +59,7 @@ def odeint_rosenbrock(
     exactly (e.g. analytically); without it, forward differences (:func:`batched_jacobian`). Raises :class:`SimulationError`
     naming the experiment (``names[b]``) and the time when integration fails.
     """
-    if t.ndim != 1 or t.numel() < 1:
-        raise SimulationError(f"evaluation times must be a 1-D tensor, but got shape {tuple(t.shape)}")
-    if t.numel() > 1 and not bool((t[1:] >= t[:-1]).all()):
-        raise SimulationError("evaluation times must be non-decreasing")
+    check_times(t)
     names = names or [str(i) for i in range(u0.shape[0])]
     out = [u0]
     t0, t_final = float(t[0]), float(t[-1])
@@ -151,6 +148,14 @@ def odeint_rosenbrock(
                 f"underflow ({h:.3g} s); the model is unstable or discontinuous there"
             )
     return torch.stack(out)
+
+
+def check_times(t: torch.Tensor) -> None:
+    """Evaluation times must be a non-empty, non-decreasing 1-D tensor (s); SimulationError otherwise."""
+    if t.ndim != 1 or t.numel() < 1:
+        raise SimulationError(f"evaluation times must be a 1-D tensor, but got shape {tuple(t.shape)}")
+    if t.numel() > 1 and not bool((t[1:] >= t[:-1]).all()):
+        raise SimulationError("evaluation times must be non-decreasing")
 
 
 def _check_finite(v: torch.Tensor, tc: float, names: list[str], what: str) -> None:

@@ -745,7 +745,9 @@ class Sweep:
         ``sweep.group`` in training at once, none once the study has ``n_trials`` trials or
         ``sweep.timeout`` has passed; and while fewer than ``pruner_startup_trials`` trials are complete
         (median pruner) only the missing ones: the pruner has nothing to compare with yet, so they
-        would all train to the end."""
+        would all train to the end. While trials of this worker train, new ones are asked for when a
+        quarter of the group (or all that are left) can start together: those that join at once share
+        one warm-start regression and one first evaluation."""
         self.fail_stale_trials(bar, mine=live)
         counts = tally(self.study.get_trials(deepcopy=False))
         _show(bar, counts)
@@ -757,10 +759,13 @@ class Sweep:
                 _say(bar, f"sweep.timeout of {self.settings.timeout:g} s reached; no new trial is started")
                 self.timed_out = True
             return 0
-        size = min(max(1, self.settings.group) - len(live), left)
+        group = max(1, self.settings.group)
+        size = min(group - len(live), left)
         missing = self.settings.pruner_startup_trials - counts.complete
         if self.settings.pruner == "median" and missing > 0:  # halving compares trials from the first one on
             size = min(size, missing - len(live))
+        if live and size < min(left, max(1, group // 4)):
+            return 0  # while others train, new trials join a few at a time: one warm start and first solve for all
         return max(0, size)
 
     def pooled(self, bar: Any, start: float) -> list[Outcome]:

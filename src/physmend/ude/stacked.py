@@ -25,6 +25,13 @@ trial, as :func:`physmend.ude.train.train` would run it:
 * its own :class:`TrainResult` at the end, with an ordinary :class:`HybridModel` of its own
   architecture (artifacts and reloading are unchanged).
 
+:class:`TrainingPool` is the same machinery kept full: models join a running stack (it is re-padded
+to the largest network; the others' weights, AdamW moments and step counts, segment offsets and
+schedules carry over unchanged) and leave it as they stop, each handed over at once; models whose
+shared settings differ train side by side in stacks of their own. A sweep asks for a new trial the
+moment one finishes instead of waiting for a group's slowest trial, whose stack would otherwise
+shrink to a few models, where per-operation overhead is back.
+
 What cannot be identical: batched matrix products (``baddbmm``) and reductions over padded
 tensors round differently from ``nn.Linear`` on one model (differences ~1e-15 relative per step),
 and the adaptive whole-trajectory solver picks one step size for all rows of a batched
@@ -370,6 +377,7 @@ class _Shared:
         self.full_batch = (self.eval_batch if self.checked is problem
                            else make_batch(problem.experiments, problem.compiled, problem.dtype))
         self.parts = _time_grid_parts(self.checked, self.eval_batch)
+        self.full_parts = self.parts if self.full_batch is self.eval_batch else _time_grid_parts(problem, self.full_batch)
         self._eq: tuple[torch.Tensor, torch.Tensor] | None = None
 
     def equation_scale(self, spec: HybridSpec) -> tuple[torch.Tensor, torch.Tensor]:
@@ -508,9 +516,13 @@ class _Stack:
             p[:, :, self.est_idx] = values[:, None, :].to(p.dtype)
         return p.reshape(m * rows, -1)
 
-    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own network."""
-        z = (self.template.features(u, x, p) - self.mean) / self.std
+    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor, *,
+                     raw: bool = False) -> torch.Tensor:
+        """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own network
+        (``raw``: ``net`` takes the features unnormalised, see :meth:`_raw`)."""
+        z = self.template.features(u, x, p)
+        if not raw:
+            z = (z - self.mean) / self.std
         *lead, rows, n_feat = z.shape
         r = rows // m
         if not lead:
@@ -519,6 +531,14 @@ class _Stack:
         out = net(zz)
         return out.reshape(m, *lead, r, -1).movedim(0, -3).reshape(*lead, rows, -1)
 
+    def _raw(self, net: _Net) -> _Net:
+        """``net`` with the features' normalisation folded into its first layer (``W/σ``, ``b − (μ/σ)·W/σ``...):
+        the same function of the raw features, two operations fewer in every right-hand side."""
+        w, b = net.weights[0], net.biases[0]
+        scaled = w / self.std[None, :, None]
+        bias = b - torch.matmul(self.mean[None, None, :], scaled)
+        return _Net([scaled, *net.weights[1:]], [bias, *net.biases[1:]], net.use, net.activations, net.scale)
+
     def _rhs(self, net: _Net, m: int, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``f(u, x) -> du/dt`` over stacked rows, structured as :meth:`HybridModel.rhs`."""
         physics = self.problem.compiled.bind(p)
@@ -526,12 +546,13 @@ class _Stack:
         n = len(self.problem.compiled.state_names)
         if not idx:
             return physics
+        net = self._raw(net)
         if len(idx) == n and idx == list(range(n)):
-            return lambda u, x: physics(u, x) + self._corrections(net, m, u, x, p)
+            return lambda u, x: physics(u, x) + self._corrections(net, m, u, x, p, raw=True)
         index = torch.tensor(idx, dtype=torch.long)
 
         def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-            corr = self._corrections(net, m, u, x, p)
+            corr = self._corrections(net, m, u, x, p, raw=True)
             du = physics(u, x)
             if du.shape[:-1] != corr.shape[:-1]:
                 lead = torch.broadcast_shapes(du.shape[:-1], corr.shape[:-1])
@@ -630,12 +651,15 @@ class _Stack:
         self.seg0 = torch.where(want[:, None, None], chained, self.seg0)
 
     # -- evaluation ----------------------------------------------------------------------------------------
-    def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False
+    def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False, whole: bool | None = None
                  ) -> list[tuple[dict[str, float], torch.Tensor] | BaseException]:
         """Whole-trajectory metrics of the models at ``positions`` in one batched solve (per model on failure).
 
         Checkpoints simulate the train and validation experiments; ``full`` every experiment
-        (test ones included), as a final evaluation does.
+        (test ones included), as a final evaluation does. Experiments recorded at different times
+        are solved apart (:func:`_time_grid_parts`) unless ``whole`` (default: ``full``): then the
+        returned outputs have a value at every time of the batch (for figures), not only at each
+        experiment's own.
         """
         m = len(positions)
         problem = self.problem if full else self.checked
@@ -644,7 +668,8 @@ class _Stack:
         rows = torch.tensor(positions, dtype=torch.long)
         net = self.net.select(rows)
         est = None if self.est_raw is None else self.est_raw.detach()[rows]
-        parts = [(list(range(b)), batch, None)] if full else self.shared.parts
+        whole = full if whole is None else whole
+        parts = [(list(range(b)), batch, None)] if whole else self.shared.full_parts if full else self.shared.parts
         try:
             with torch.no_grad():
                 if len(parts) == 1:
@@ -1026,7 +1051,7 @@ class TrainingPool:
         final: dict[int, Any] = {}
         if self.final_eval == "batched" and ok:
             try:
-                final = _final_batched(ok, lane)
+                final = _final_batched(ok, lane, whole=self.figures)
             except Exception as exc:  # noqa: BLE001 - each model's outcome
                 final = {mem.slot: exc for mem in ok}
         results: list[tuple[int, TrainResult | BaseException]] = []
@@ -1046,13 +1071,15 @@ class TrainingPool:
             self.finish(slot, result)
 
 
-def _final_batched(done: list[_Member], lane: _Lane) -> dict[int, tuple[dict[str, float], torch.Tensor] | BaseException]:
-    """Every finished model's best checkpoint simulated on every experiment in one batched solve, by slot."""
+def _final_batched(done: list[_Member], lane: _Lane, *, whole: bool = True
+                   ) -> dict[int, tuple[dict[str, float], torch.Tensor] | BaseException]:
+    """Every finished model's best checkpoint simulated on every experiment in one batched solve, by
+    slot (``whole``: outputs at every time of the batch, as figures need them)."""
     for mem in done:
         assert mem.best is not None
         mem.hybrid.load_state_dict(mem.best[1])
     stack = lane.new_stack(done)  # sorted by activation: map results back by slot
-    outcomes = stack.evaluate(list(range(stack.size)), lane.sim, full=True)
+    outcomes = stack.evaluate(list(range(stack.size)), lane.sim, full=True, whole=whole)
     return {mem.slot: outcome for mem, outcome in zip(stack.members, outcomes)}
 
 

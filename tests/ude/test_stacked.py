@@ -253,9 +253,11 @@ def test_models_joining_and_leaving_a_pool_train_exactly_as_alone(short_project:
                         final_eval="own", figures=False)
     pool.join([(0, a, problem)])
     for tick in (1, 2):
+        assert pool.aligned == (tick == 1)  # models join when all have just been evaluated (eval_every 2)
         pool.epoch()
+    assert pool.aligned
     pool.join([(1, b, problem), (2, c, problem)])  # model 0 is at epoch 2: the others start at 0
-    assert pool.live == 3
+    assert pool.live == 3 and pool.aligned
     while pool.live:
         tick += 1
         pool.epoch()

@@ -41,9 +41,9 @@ Interrupted trials
 
 Groups (``sweep.group`` > 1)
     Up to ``group`` trials of a worker train at once, in one batched solve where their settings
-    allow (:class:`physmend.ude.stacked.TrainingPool`). The pool is refilled as trials finish: a
-    new trial is asked for as soon as one is pruned or done, so the stacks stay full instead of
-    waiting for a group's slowest trial. Every trial is written to its child run and told to the
+    allow (:class:`physmend.ude.stacked.TrainingPool`). The pool is refilled as trials finish: new
+    trials are asked for at the next checkpoint after one is pruned or done (when it was pruned or
+    done, as a rule), so the stacks stay full instead of waiting for a group's slowest trial. Every trial is written to its child run and told to the
     study the moment it finishes.
 """
 
@@ -745,9 +745,7 @@ class Sweep:
         ``sweep.group`` in training at once, none once the study has ``n_trials`` trials or
         ``sweep.timeout`` has passed; and while fewer than ``pruner_startup_trials`` trials are complete
         (median pruner) only the missing ones: the pruner has nothing to compare with yet, so they
-        would all train to the end. While trials of this worker train, new ones are asked for when a
-        quarter of the group (or all that are left) can start together: those that join at once share
-        one warm-start regression and one first evaluation."""
+        would all train to the end."""
         self.fail_stale_trials(bar, mine=live)
         counts = tally(self.study.get_trials(deepcopy=False))
         _show(bar, counts)
@@ -764,8 +762,6 @@ class Sweep:
         missing = self.settings.pruner_startup_trials - counts.complete
         if self.settings.pruner == "median" and missing > 0:  # halving compares trials from the first one on
             size = min(size, missing - len(live))
-        if live and size < min(left, max(1, group // 4)):
-            return 0  # while others train, new trials join a few at a time: one warm start and first solve for all
         return max(0, size)
 
     def pooled(self, bar: Any, start: float) -> list[Outcome]:
@@ -826,7 +822,9 @@ class Sweep:
                             final_eval="batched", figures=self.settings.figures)
         try:
             while True:
-                count = 0 if surplus else self.room(bar, start, live=live.keys())
+                # new trials join when the others have just been evaluated (pool.aligned): then all
+                # checkpoints of a stack stay on the same epochs, one solve each time
+                count = 0 if surplus or not pool.aligned else self.room(bar, start, live=live.keys())
                 if count:
                     pool.join(ask(count))
                 if not pool.live:

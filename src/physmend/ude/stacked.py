@@ -917,6 +917,15 @@ class TrainingPool:
         """Models in training."""
         return sum(lane.stack.size for lane in self.lanes.values() if lane.stack is not None)
 
+    @property
+    def aligned(self) -> bool:
+        """Whether every live model has just had a checkpoint (or has none live): the time for new
+        models to join. Models that join then keep their checkpoints on the same epochs as the
+        others, so each stack is evaluated in one solve per ``train.eval_every`` epochs, not in one
+        solve per set of models that happened to join together."""
+        return all(mem.epoch % lane.eval_every == 0
+                   for lane in self.lanes.values() if lane.stack is not None for mem in lane.stack.members)
+
     # -- joining -------------------------------------------------------------------------------------------
     def join(self, entries: Sequence[tuple[int, DictConfig, Problem]]) -> None:
         """Start models ``(slot, cfg, problem)``: each is built, warm-started and evaluated at epoch 0 as

@@ -1287,7 +1287,7 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
         _join_workers(list(helpers))
     except KeyboardInterrupt:
         status = "KILLED"
-        _say(bar, "interrupted: the running trial is recorded FAIL (interrupted); rerun the same command to resume")
+        _say(bar, "interrupted: the trials in training are recorded FAIL (interrupted); rerun the same command to resume")
         for proc in helpers:  # a Ctrl-C reaches them too: they record their own running trials
             try:
                 proc.wait(timeout=10)

@@ -450,41 +450,6 @@ def test_workers_option_needs_the_command_line(user_project: Path, monkeypatch: 
     assert not (user_project / "mlflow.db").exists() and not (user_project / "optuna.db").exists()  # nothing written
 
 
-MIXED_EPOCHS_SPACE = """\
-params:
-  train.epochs: {choice: [2, 6]}
-first_trials:
-  - {train.epochs: 6}
-  - {train.epochs: 2}
-  - {train.epochs: 2}
-"""
-
-
-def test_a_group_is_refilled_as_its_trials_finish(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """``sweep.group=2``: the moment a trial finishes, the next one is asked for and trains beside
-    the trial still running (trials of other epochs train in their own stack of the same pool); each
-    is written and told when it finishes, not when its group does."""
-    monkeypatch.chdir(user_project)
-    space = write_space(user_project, MIXED_EPOCHS_SPACE)
-    args = [a for a in sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=3", "sweep.group=2",
-                                  "sweep.pruner=none", "train.patience=0", "sweep.study_name=refilled") if a != "train.epochs=4"]
-    assert main(args) == 0
-    trials = load_study(user_project, "refilled").get_trials()
-    assert [t.state.name for t in trials] == ["COMPLETE"] * 3
-    assert [t.params["train.epochs"] for t in trials] == [6, 2, 2]
-    # trial 2 was asked when trial 1 (2 epochs) finished, while trial 0 (6 epochs) was still training
-    assert trials[1].datetime_complete <= trials[2].datetime_start < trials[0].datetime_complete
-    assert trials[2].datetime_complete <= trials[0].datetime_complete
-    store, _ = open_stores(user_project)
-    kids = children(store, load_study(user_project, "refilled").user_attrs[sw.PARENT_ATTR])
-    assert [k.data.tags["physmend.trial_state"] for k in kids] == ["COMPLETE"] * 3
-    for trial, kid in zip(trials, kids):
-        steps = [m.step for m in store.client.get_metric_history(kid.info.run_id, "val.rmse")]
-        epochs = trial.params["train.epochs"]
-        assert steps == [*range(0, epochs + 1, 2), epochs + 1]
-        assert kid.data.metrics["val.rmse"] == pytest.approx(trial.value, rel=1e-12)
-
-
 def test_grouped_trials_train_as_one_stack_and_each_keeps_its_own_run(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``sweep.group=3``: trials asked three at a time and trained in one batched solve; every
     trial still gets its own child run with its own per-epoch metrics, and its weights reload to

@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 from physmend.config import compose
 from physmend.problem import load_problem
 from physmend.ude import TrainingDiverged, TrainResult, UDEConfigError, evaluate, load_hybrid, train
-from physmend.ude.stacked import TrainingPool, _prepare, _Stack, stack_key, train_stack
+from physmend.ude.stacked import _prepare, _Stack, stack_key, train_stack
 from physmend.ude.train import _evaluate, _sim_opts, checkpoint_problem, plan_shooting, reference
 from physmend.ude.warmstart import WARM_STATS, forget_warm_starts
 
@@ -221,60 +221,6 @@ def test_a_stopped_or_diverging_model_leaves_the_others_alone(short_project: Pat
     assert [e for i, e in seen if i == 0] == [2, 4, 6]
     assert [e for i, e in seen if i == 1] == [2]
     assert [e for i, e in seen if i == 2] == []
-
-
-def test_models_joining_and_leaving_a_pool_train_exactly_as_alone(short_project: Path,
-                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    """A training pool is refilled while it trains: a model that joins a running stack, a larger
-    network that forces the stack to be re-padded, and the largest network leaving (the stack is
-    re-padded smaller) change nothing for the others, whose AdamW state, schedule, segment offsets and
-    checkpoints carry over: each ends as it ends alone. Finished models are handed over at once."""
-    monkeypatch.chdir(short_project)
-    a = _cfg(short_project, "train.epochs=6", *TRIALS[0])  # width 8, depth 1
-    b = _cfg(short_project, "train.epochs=6", *TRIALS[1])  # width 16, depth 2
-    c = _cfg(short_project, "train.epochs=6", *TRIALS[2])  # width 12, depth 3
-    problem = load_problem(a)
-
-    class Pruned(Exception):
-        pass
-
-    tick = 0
-    finished: dict[int, tuple[int, object]] = {}
-    padded: list[list[tuple[int, ...]]] = []
-
-    def report(slot: int, epoch: int, row: dict[str, float]) -> None:
-        if slot == 2 and epoch == 2:
-            raise Pruned("pruned at epoch 2")
-        if slot == 1 and epoch > 0:  # the stack's padded layer shapes while model 1 trains
-            (lane,) = pool.lanes.values()
-            padded.append([tuple(w.shape[1:]) for w in lane.stack.net.weights])
-
-    pool = TrainingPool(lambda slot, result: finished.__setitem__(slot, (tick, result)), report=report,
-                        final_eval="own", figures=False)
-    pool.join([(0, a, problem)])
-    for tick in (1, 2):
-        assert pool.aligned == (tick == 1)  # models join when all have just been evaluated (eval_every 2)
-        pool.epoch()
-    assert pool.aligned
-    pool.join([(1, b, problem), (2, c, problem)])  # model 0 is at epoch 2: the others start at 0
-    assert pool.live == 3 and pool.aligned
-    while pool.live:
-        tick += 1
-        pool.epoch()
-    assert {slot: t for slot, (t, _) in finished.items()} == {2: 4, 0: 6, 1: 8}
-    assert isinstance(finished[2][1], Pruned)
-    # model 1 joined the stack of model 0 (width 8, depth 1): with model 2 (depth 3) there, 3 hidden
-    # layers of width 16 (at model 1's epoch 2); once model 2 had left, 2 (epochs 4 and 6)
-    assert padded == [[(3, 16), (16, 16), (16, 16), (16, 2)], [(3, 16), (16, 16), (16, 2)], [(3, 16), (16, 16), (16, 2)]]
-    for slot, cfg in ((0, a), (1, b)):
-        result = finished[slot][1]
-        assert isinstance(result, TrainResult), result
-        alone = train(cfg, problem)
-        for key, value in alone.hybrid.state_dict().items():
-            torch.testing.assert_close(result.hybrid.state_dict()[key], value, rtol=1e-9, atol=1e-12, msg=key)
-        assert [r["epoch"] for r in result.history] == [0.0, 2.0, 4.0, 6.0]
-        assert [r["loss"] for r in result.history[1:]] == pytest.approx([r["loss"] for r in alone.history[1:]], rel=1e-9)
-        assert result.val_rmse == pytest.approx(alone.val_rmse, rel=1e-6)
 
 
 def test_shared_settings_must_agree(short_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -38,13 +38,6 @@ Interrupted trials
     (and Ctrl-C'd ones) reached no verdict, so they do not count towards ``n_trials``: resuming
     runs a fresh trial in their place. They are not re-enqueued — a configuration that crashed
     its worker is not retried blindly.
-
-Groups (``sweep.group`` > 1)
-    Up to ``group`` trials of a worker train at once, in one batched solve where their settings
-    allow (:class:`physmend.ude.stacked.TrainingPool`). The pool is refilled as trials finish: new
-    trials are asked for at the next checkpoint after one is pruned or done (when it was pruned or
-    done, as a rule), so the stacks stay full instead of waiting for a group's slowest trial. Every trial is written to its child run and told to the
-    study the moment it finishes.
 """
 
 from __future__ import annotations
@@ -61,7 +54,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Collection, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -662,7 +655,7 @@ def is_stale(trial: Any, *, now: float, stale_after: float, me: dict[str, Any]) 
     worker = trial.user_attrs.get(WORKER_ATTR) or {}
     if worker.get("host") == me["host"]:
         if worker.get("pid") == me["pid"] or not _pid_alive(worker.get("pid")):
-            return True  # the caller skips its own trials in training; a dead PID runs none
+            return True  # this process runs no trial while it looks; a dead PID runs none either
     beat = trial.user_attrs.get(HEARTBEAT_ATTR)
     if beat is None and trial.datetime_start is not None:
         beat = trial.datetime_start.timestamp()
@@ -721,18 +714,29 @@ class Sweep:
     train: Callable[..., Any]
     me: dict[str, Any] = field(default_factory=_worker)
     failures_in_a_row: int = 0
-    timed_out: bool = False  # sweep.timeout has passed (said once)
 
     # ---- the loop
     def loop(self, bar: Any) -> list[Outcome]:
         """Ask, train and tell until the study has ``n_trials`` trials or time runs out."""
         start = time.monotonic()
-        if self.settings.group > 1:
-            return self.pooled(bar, start)
         outcomes: list[Outcome] = []
         while True:
-            if not self.room(bar, start):
+            self.fail_stale_trials(bar)
+            counts = tally(self.study.get_trials(deepcopy=False))
+            _show(bar, counts)
+            if counts.counted + counts.running >= self.settings.n_trials:
                 break
+            if self.settings.timeout is not None and time.monotonic() - start >= self.settings.timeout:
+                _say(bar, f"sweep.timeout of {self.settings.timeout:g} s reached; no new trial is started")
+                break
+            if self.settings.group > 1:
+                batch = self.trial_group(bar, self.group_size(counts))
+                if batch is None:
+                    break
+                for outcome in batch:
+                    outcomes.append(outcome)
+                    self._after(outcome, bar)
+                continue
             outcome = self.one_trial(bar)
             if outcome is None:
                 break
@@ -740,109 +744,84 @@ class Sweep:
             self._after(outcome, bar)
         return outcomes
 
-    def room(self, bar: Any, start: float, *, live: Collection[int] = ()) -> int:
-        """How many more trials to start now, with trials ``live`` (numbers) of this worker in training: up to
-        ``sweep.group`` in training at once, none once the study has ``n_trials`` trials or
-        ``sweep.timeout`` has passed; and while fewer than ``pruner_startup_trials`` trials are complete
-        (median pruner) only the missing ones: the pruner has nothing to compare with yet, so they
-        would all train to the end."""
-        self.fail_stale_trials(bar, mine=live)
-        counts = tally(self.study.get_trials(deepcopy=False))
-        _show(bar, counts)
-        left = self.settings.n_trials - counts.counted - counts.running
-        if left <= 0:
-            return 0
-        if self.settings.timeout is not None and time.monotonic() - start >= self.settings.timeout:
-            if not self.timed_out:
-                _say(bar, f"sweep.timeout of {self.settings.timeout:g} s reached; no new trial is started")
-                self.timed_out = True
-            return 0
-        group = max(1, self.settings.group)
-        size = min(group - len(live), left)
+    def group_size(self, counts: Tally) -> int:
+        """Trials to ask together: ``sweep.group``, but while fewer than ``pruner_startup_trials``
+        trials are complete only the missing ones: the median pruner has nothing to compare with
+        yet, so a first group would otherwise train every one of its trials to the end."""
+        size = min(self.settings.group, self.settings.n_trials - counts.counted - counts.running)
         missing = self.settings.pruner_startup_trials - counts.complete
         if self.settings.pruner == "median" and missing > 0:  # halving compares trials from the first one on
-            size = min(size, missing - len(live))
-        return max(0, size)
+            size = min(size, missing)
+        return max(1, size)
 
-    def pooled(self, bar: Any, start: float) -> list[Outcome]:
-        """Trials trained together, ``sweep.group`` at a time, in a pool that is refilled as trials
-        finish (:class:`physmend.ude.stacked.TrainingPool`: trials that can share a solve train as one
-        stack), so stacks stay full instead of waiting for a group's slowest trial. Each trial is still
-        its own trial: its own run, metrics and verdict, written and told the moment it finishes."""
+    def trial_group(self, bar: Any, size: int) -> list[Outcome] | None:
+        """Ask for up to ``size`` trials and train those that can share a solve as one stack
+        (:func:`physmend.ude.stacked.train_stack`, grouped by ``stack_key``); each is still its own
+        trial with its own child run. ``None`` when no trial could be asked (surplus)."""
         from optuna.trial import TrialState
 
-        from physmend.ude.stacked import TrainingPool
+        from physmend.ude.stacked import stack_key
 
-        outcomes: list[Outcome] = []
-        live: dict[int, tuple[Any, dict[str, Any], DictConfig, Reporter, Heartbeat]] = {}
-        surplus = False
-
-        def ask(count: int) -> list[tuple[int, DictConfig, Any]]:
-            nonlocal surplus
-            entries = []
-            for _ in range(count):
-                self.study.sampler = self.settings.sampler_for(len(self.study.get_trials(deepcopy=False)))
-                trial = self.study.ask()
-                trial.set_user_attr(WORKER_ATTR, self.me)
-                if self._surplus(trial):
-                    trial.set_user_attr(REASON_ATTR, "surplus")
+        asked = []
+        for _ in range(max(1, size)):
+            self.study.sampler = self.settings.sampler_for(len(self.study.get_trials(deepcopy=False)))
+            trial = self.study.ask()
+            trial.set_user_attr(WORKER_ATTR, self.me)
+            if self._surplus(trial):
+                trial.set_user_attr(REASON_ATTR, "surplus")
+                self.study.tell(trial, state=TrialState.FAIL)
+                break
+            asked.append(trial)
+        if not asked:
+            return None
+        outcomes: dict[int, Outcome] = {}
+        groups: dict[Any, list[tuple[Any, dict[str, Any], DictConfig, Any]]] = {}
+        for trial in asked:
+            values = self.space.suggest(trial)
+            try:
+                cfg = self.configs.config(values)
+                problem = self.configs.problem(values, cfg)
+            except Exception as exc:  # noqa: BLE001 - a bad trial config fails the trial, not the sweep
+                outcomes[trial.number] = Outcome(trial.number, "FAIL", reason=f"{type(exc).__name__}: {exc}")
+                continue
+            groups.setdefault((stack_key(cfg), id(problem)), []).append((trial, values, cfg, problem))
+        try:
+            with contextlib.ExitStack() as beats:
+                for trial in asked:
+                    beats.enter_context(Heartbeat(trial, self.settings.heartbeat_interval))
+                for members in groups.values():
+                    outcomes.update(self._train_group(members))
+        except KeyboardInterrupt:
+            for trial in asked:
+                if trial.number not in outcomes:
+                    trial.set_user_attr(REASON_ATTR, "interrupted")
                     self.study.tell(trial, state=TrialState.FAIL)
-                    surplus = True
-                    break
-                values = self.space.suggest(trial)
-                try:
-                    cfg = self.configs.config(values)
-                    problem = self.configs.problem(values, cfg)
-                except Exception as exc:  # noqa: BLE001 - a bad trial config fails the trial, not the sweep
-                    outcome = Outcome(trial.number, "FAIL", reason=f"{type(exc).__name__}: {exc}")
-                    self.tell(trial, outcome)
-                    outcomes.append(outcome)
-                    self._after(outcome, bar)
-                    continue
-                beat = Heartbeat(trial, self.settings.heartbeat_interval)
-                beat.__enter__()
-                live[trial.number] = (trial, values, cfg, Reporter(trial, None), beat)
-                entries.append((trial.number, cfg, problem))
-            return entries
+            raise
+        for trial in asked:
+            self.tell(trial, outcomes[trial.number])
+        return [outcomes[t.number] for t in asked]
 
-        def finish(number: int, result: Any) -> None:
-            trial, values, cfg, reporter, beat = live.pop(number)
-            beat.__exit__(None, None, None)
+    def _train_group(self, members: list[tuple[Any, dict[str, Any], DictConfig, Any]]) -> dict[int, Outcome]:
+        """Train one stack; then log each trial's buffered metrics and result to its own child run."""
+        from physmend.ude.stacked import train_stack
+
+        reporters = [Reporter(trial, None) for trial, *_ in members]
+        try:
+            results: list[Any] = train_stack([cfg for _, _, cfg, _ in members], members[0][3],
+                                             report=lambda i, epoch, row: reporters[i](epoch, row),
+                                             final_eval="batched", figures=self.settings.figures)
+        except Exception as exc:  # noqa: BLE001 - the whole stack failed: every trial FAILs, the sweep goes on
+            results = [exc] * len(members)
+        out: dict[int, Outcome] = {}
+        for (trial, values, cfg, _), reporter, result in zip(members, reporters, results):
             holder: dict[str, str] = {}
             try:
-                outcome = self._log_stacked(trial, values, cfg, reporter, result, holder)
+                out[trial.number] = self._log_stacked(trial, values, cfg, reporter, result, holder)
             except Exception as exc:  # noqa: BLE001 - diverged, solver failure, anything: FAIL
                 self._mark_child(holder.get("run_id"), "FAIL")
-                outcome = Outcome(trial.number, "FAIL", run_id=holder.get("run_id"), reason=f"{type(exc).__name__}: {exc}")
-            self.tell(trial, outcome)
-            outcomes.append(outcome)
-            self._after(outcome, bar)
-
-        pool = TrainingPool(finish, report=lambda number, epoch, row: live[number][3](epoch, row),
-                            final_eval="batched", figures=self.settings.figures)
-        try:
-            while True:
-                # new trials join when the others have just been evaluated (pool.aligned): then all
-                # checkpoints of a stack stay on the same epochs, one solve each time
-                count = 0 if surplus or not pool.aligned else self.room(bar, start, live=live.keys())
-                if count:
-                    pool.join(ask(count))
-                if not pool.live:
-                    if count == 0 or surplus:
-                        break
-                    continue  # every new trial finished at once (a bad config, say): ask again
-                pool.epoch()
-        except BaseException as exc:
-            reason = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"the sweep stopped: {type(exc).__name__}: {exc}"
-            for trial, *_, beat in list(live.values()):
-                beat.__exit__(None, None, None)
-                try:
-                    trial.set_user_attr(REASON_ATTR, reason[:2000])
-                    self.study.tell(trial, state=TrialState.FAIL)
-                except Exception:  # noqa: BLE001 - e.g. judged stale by another worker meanwhile
-                    pass
-            raise
-        return outcomes
+                out[trial.number] = Outcome(trial.number, "FAIL", run_id=holder.get("run_id"),
+                                            reason=f"{type(exc).__name__}: {exc}")
+        return out
 
     def _log_stacked(self, trial: "optuna.Trial", values: dict[str, Any], cfg: DictConfig, reporter: "Reporter",
                      result: Any, holder: dict[str, str]) -> Outcome:
@@ -998,14 +977,13 @@ class Sweep:
             pass
 
     # ---- stale trials
-    def fail_stale_trials(self, bar: Any, *, mine: Collection[int] = ()) -> None:
-        """Mark RUNNING trials whose worker is gone FAIL (interrupted), their child runs KILLED; trials
-        ``mine`` (numbers) are this process's own, in training."""
+    def fail_stale_trials(self, bar: Any) -> None:
+        """Mark RUNNING trials whose worker is gone FAIL (interrupted), their child runs KILLED."""
         from optuna.trial import TrialState
 
         now = time.time()
         for t in self.study.get_trials(deepcopy=False, states=(TrialState.RUNNING,)):
-            if t.number in mine or not is_stale(t, now=now, stale_after=self.settings.stale_after, me=self.me):
+            if not is_stale(t, now=now, stale_after=self.settings.stale_after, me=self.me):
                 continue
             worker = t.user_attrs.get(WORKER_ATTR) or {}
             try:
@@ -1287,7 +1265,7 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
         _join_workers(list(helpers))
     except KeyboardInterrupt:
         status = "KILLED"
-        _say(bar, "interrupted: the trials in training are recorded FAIL (interrupted); rerun the same command to resume")
+        _say(bar, "interrupted: the running trial is recorded FAIL (interrupted); rerun the same command to resume")
         for proc in helpers:  # a Ctrl-C reaches them too: they record their own running trials
             try:
                 proc.wait(timeout=10)

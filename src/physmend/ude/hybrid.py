@@ -102,7 +102,6 @@ class HybridModel(nn.Module):
         names = compiled.state_names
         self.corrected_idx = [names.index(n) for n in spec.corrected]
         self.state_idx = [names.index(n) for n in spec.in_states]
-        self._all_states = self.state_idx == list(range(len(names)))  # features start with u itself
         self.observed_idx = [compiled.observed_names.index(n) for n in spec.in_observed]
         self.input_idx = [compiled.input_names.index(n) for n in spec.in_inputs]
         self.param_idx = [compiled.parameter_names.index(n) for n in spec.in_parameters]
@@ -145,7 +144,7 @@ class HybridModel(nn.Module):
     # -- the network ----------------------------------------------------------------------------
     def features(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Raw (unnormalised) network inputs ``(..., B, n_features)`` in physical units."""
-        parts = [u if self._all_states else u[..., self.state_idx]]
+        parts = [u[..., self.state_idx]]
         lead = u.shape[:-1]
         if self.observed_idx:
             parts.append(self.compiled.observed(u, x, p)[..., self.observed_idx])

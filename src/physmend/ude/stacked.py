@@ -25,13 +25,6 @@ trial, as :func:`physmend.ude.train.train` would run it:
 * its own :class:`TrainResult` at the end, with an ordinary :class:`HybridModel` of its own
   architecture (artifacts and reloading are unchanged).
 
-:class:`TrainingPool` is the same machinery kept full: models join a running stack (it is re-padded
-to the largest network; the others' weights, AdamW moments and step counts, segment offsets and
-schedules carry over unchanged) and leave it as they stop, each handed over at once; models whose
-shared settings differ train side by side in stacks of their own. A sweep asks for a new trial the
-moment one finishes instead of waiting for a group's slowest trial, whose stack would otherwise
-shrink to a few models, where per-operation overhead is back.
-
 What cannot be identical: batched matrix products (``baddbmm``) and reductions over padded
 tensors round differently from ``nn.Linear`` on one model (differences ~1e-15 relative per step),
 and the adaptive whole-trajectory solver picks one step size for all rows of a batched
@@ -85,7 +78,7 @@ from physmend.ude.train import (
 )
 from physmend.ude.warmstart import Forced, fit_models, forced_trajectories, recall, remember, segment_starts, warm_key, warm_start
 
-__all__ = ["SHARED_KEYS", "TrainingPool", "stack_key", "train_stack"]
+__all__ = ["SHARED_KEYS", "stack_key", "train_stack"]
 
 #: Settings every model of one stack must share: they shape the common solve (or the problem).
 SHARED_KEYS: tuple[str, ...] = (
@@ -209,22 +202,10 @@ class _Net:
         )
 
 
-def _net_tensors(hybrid: HybridModel) -> list[torch.Tensor]:
-    """A model's own (unpadded) layers in the stack's order: ``Wᵀ (a, b)``, ``bias (1, b)`` per layer."""
-    out: list[torch.Tensor] = []
-    for lin in _linears(hybrid):
-        out += [lin.weight.detach().T, lin.bias.detach()[None]]
-    return out
-
-
-def _slots(n_layers: int, depth: int) -> list[int]:
-    """Padded layer slot of each of a model's ``n_layers`` layers: its hidden layers first, its
-    output layer always in the last slot (``depth``)."""
-    return list(range(n_layers - 1)) + [depth]
-
-
-def _dims(specs: Sequence[HybridSpec]) -> list[tuple[int, int]]:
-    """``(in, out)`` of every padded layer for models ``specs``: the largest width and depth."""
+def _pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[_Net, list[torch.Tensor | None]]:
+    """Padded stacked networks copied from ``hybrids``, and boolean masks of each layer's real entries."""
+    m = len(hybrids)
+    specs = [h.spec for h in hybrids]
     depths = [len(s.widths) for s in specs]
     if len({d == 0 for d in depths}) > 1:
         raise UDEConfigError(f"train_stack: ude.depth=0 (a linear correction) cannot share a stack with deeper networks, "
@@ -232,63 +213,43 @@ def _dims(specs: Sequence[HybridSpec]) -> list[tuple[int, int]]:
     depth = max(depths)
     n_in, n_out = specs[0].n_inputs, len(specs[0].corrected)
     width = max((w for s in specs for w in s.widths), default=0)
-    return [(n_in if l == 0 else width, width) for l in range(depth)] + [(width if depth else n_in, n_out)]
-
-
-def _pad(values: Sequence[Sequence[torch.Tensor]], dims: list[tuple[int, int]], dtype: torch.dtype
-         ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
-    """Models' own layer tensors (``values[i]`` in :func:`_net_tensors` order) stacked and zero-padded
-    to ``dims``: ``(M, a, b)`` weights and ``(M, 1, b)`` biases alternating, and boolean masks of
-    each tensor's real entries."""
-    m, depth = len(values), len(dims) - 1
-    out = [torch.zeros(m, *shape, dtype=dtype) for a, b in dims for shape in ((a, b), (1, b))]
-    masks = [torch.zeros(m, *shape, dtype=torch.bool) for a, b in dims for shape in ((a, b), (1, b))]
+    dims = [(n_in if l == 0 else width, width) for l in range(depth)] + [(width if depth else n_in, n_out)]
+    weights = [torch.zeros(m, a, b, dtype=dtype) for a, b in dims]
+    biases = [torch.zeros(m, 1, b, dtype=dtype) for _, b in dims]
+    w_mask = [torch.zeros(m, a, b, dtype=torch.bool) for a, b in dims]
+    b_mask = [torch.zeros(m, 1, b, dtype=torch.bool) for _, b in dims]
     with torch.no_grad():
-        for i, vals in enumerate(values):
-            for j, l in enumerate(_slots(len(vals) // 2, depth)):
-                for k in (0, 1):
-                    v = vals[2 * j + k]
-                    out[2 * l + k][i, :v.shape[0], :v.shape[1]] = v
-                    masks[2 * l + k][i, :v.shape[0], :v.shape[1]] = True
-    return out, masks
-
-
-def _unpad(tensors: Sequence[torch.Tensor], row: int, like: Sequence[torch.Tensor]) -> list[torch.Tensor]:
-    """Row ``row`` of padded layer tensors cut back to the shapes of ``like`` (a model's own layers)."""
-    depth = len(tensors) // 2 - 1
-    out = []
-    for j, l in enumerate(_slots(len(like) // 2, depth)):
-        for k in (0, 1):
-            a, b = like[2 * j + k].shape
-            out.append(tensors[2 * l + k].detach()[row, :a, :b].clone())
-    return out
-
-
-def _pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[_Net, list[torch.Tensor | None]]:
-    """Padded stacked networks copied from ``hybrids``, and boolean masks of each layer's real entries
-    (None where every entry is real)."""
-    m = len(hybrids)
-    specs = [h.spec for h in hybrids]
-    dims = _dims(specs)
-    depth = len(dims) - 1
-    tensors, masks = _pad([_net_tensors(h) for h in hybrids], dims, dtype)
+        for i, hybrid in enumerate(hybrids):
+            lins = _linears(hybrid)
+            slots = list(range(len(lins) - 1)) + [depth]  # the output layer is always the last one
+            for lin, l in zip(lins, slots):
+                a, b = lin.in_features, lin.out_features
+                weights[l][i, :a, :b] = lin.weight.T
+                biases[l][i, 0, :b] = lin.bias
+                w_mask[l][i, :a, :b] = True
+                b_mask[l][i, 0, :b] = True
     use: list[torch.Tensor | None] = []
     for l in range(depth):
-        rows = torch.tensor([len(s.widths) > l for s in specs]).reshape(m, 1, 1)
+        rows = torch.tensor([d > l for d in depths]).reshape(m, 1, 1)
         use.append(None if bool(rows.all()) else rows)
     scale = torch.stack([h.out_scale * h.out_mask for h in hybrids])[:, None, :].to(dtype)
-    net = _Net(tensors[0::2], tensors[1::2], use, [s.activation for s in specs], scale)
-    return net, [None if bool(mk.all()) else mk for mk in masks]
+    net = _Net(weights, biases, use, [s.activation for s in specs], scale)
+    masks: list[torch.Tensor | None] = []
+    for mk in [x for pair in zip(w_mask, b_mask) for x in pair]:
+        masks.append(None if bool(mk.all()) else mk)
+    return net, masks
 
 
 def _write_back(net: _Net, row: int, hybrid: HybridModel, est_raw: torch.Tensor | None) -> None:
     """Copy stack row ``row`` into ``hybrid``'s own (unpadded) layers and estimates."""
-    padded = [x for pair in zip(net.weights, net.biases) for x in pair]
-    own = _unpad(padded, row, _net_tensors(hybrid))
+    lins = _linears(hybrid)
+    depth = len(net.weights) - 1
+    slots = list(range(len(lins) - 1)) + [depth]
     with torch.no_grad():
-        for j, lin in enumerate(_linears(hybrid)):
-            lin.weight.copy_(own[2 * j].T)
-            lin.bias.copy_(own[2 * j + 1][0])
+        for lin, l in zip(lins, slots):
+            a, b = lin.in_features, lin.out_features
+            lin.weight.copy_(net.weights[l].detach()[row, :a, :b].T)
+            lin.bias.copy_(net.biases[l].detach()[row, 0, :b])
         if est_raw is not None:
             hybrid.est_raw.copy_(est_raw.detach()[row])
 
@@ -296,11 +257,9 @@ def _write_back(net: _Net, row: int, hybrid: HybridModel, est_raw: torch.Tensor 
 # -- one model's bookkeeping ------------------------------------------------------------------------
 @dataclass
 class _Member:
-    """One trial of the stack: everything that is its own outside the stacked tensors. While the
-    model is out of a stack (between stacks, or before it joins one) its trainable state lives
-    here: the network and estimates in ``hybrid``, the rest in ``free``, ``moments`` and ``steps``."""
+    """One trial of the stack: everything that is its own outside the stacked tensors."""
 
-    slot: int  # the caller's index of the model (into cfgs and the result list)
+    slot: int  # index into cfgs (and the result list)
     cfg: DictConfig
     hybrid: HybridModel
     forced: Forced | None
@@ -311,10 +270,6 @@ class _Member:
     since_best: int = 0
     outcome: BaseException | None = None  # set when the model stops with an error
     done: bool = False
-    epoch: int = 0  # epochs trained so far
-    free: torch.Tensor | None = None  # (S, n) trainable segment-start offsets (None: zeros)
-    moments: tuple[list[torch.Tensor], list[torch.Tensor]] | None = None  # AdamW's two moments, own shapes
-    steps: int = 0  # AdamW steps taken
 
 
 def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
@@ -333,60 +288,6 @@ def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
 
 
 # -- the stack -----------------------------------------------------------------------------------------
-def _time_grid_parts(problem: Problem, batch: Batch) -> list[tuple[list[int], Batch, torch.Tensor | None]]:
-    """``batch``'s experiments in sets that share their times and input knots: ``(indices into batch,
-    their own batch, their times' rows in batch.t)``; one set ``(all, batch, None)`` when all share.
-
-    An adaptive solve of a batch ends steps on every evaluation time and input knot of every row;
-    experiments recorded on different clocks would each take the steps of all. Solved per set, each
-    takes only its own (the same number of steps in all, on fewer rows each)."""
-    sets: list[tuple[list[int], tuple[tuple[float, ...], tuple[float, ...]]]] = []
-    for b, e in enumerate(problem.experiments):
-        own = make_batch([e], problem.compiled, problem.dtype)
-        grid = (tuple(own.t.tolist()), tuple(own.inputs.knots.tolist()))
-        for members, key in sets:
-            if key == grid:
-                members.append(b)
-                break
-        else:
-            sets.append(([b], grid))
-    if len(sets) == 1:
-        return [(list(range(batch.size)), batch, None)]
-    parts = []
-    for members, _ in sets:
-        part = make_batch([problem.experiments[b] for b in members], problem.compiled, problem.dtype)
-        parts.append((members, part, torch.searchsorted(batch.t, part.t)))
-    return parts
-
-
-class _Shared:
-    """What every stack on one problem and shooting plan shares: the pieces of the training loss that
-    do not depend on the models (as in train()) and the evaluation batches."""
-
-    def __init__(self, problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig) -> None:
-        self.problem, self.ref = problem, ref
-        tm = _train_mask(problem, ref.batch)
-        self.fixed_first = ref.batch.u0[plan.exp_index]
-        self.state_scale = ref.states[tm].std(0).clamp_min(1e-3)
-        self.out_std = _output_spread(ref.batch.obs[tm])
-        self.params_seg = ref.batch.params[plan.exp_index]
-        self.has_next = plan.next_of >= 0
-        self.cont_w = float(cfg.train.continuity_weight)
-        self.checked = checkpoint_problem(problem)  # checkpoints simulate train/validation experiments only
-        self.eval_batch = make_batch(self.checked.experiments, problem.compiled, problem.dtype)
-        self.full_batch = (self.eval_batch if self.checked is problem
-                           else make_batch(problem.experiments, problem.compiled, problem.dtype))
-        self.parts = _time_grid_parts(self.checked, self.eval_batch)
-        self.full_parts = self.parts if self.full_batch is self.eval_batch else _time_grid_parts(problem, self.full_batch)
-        self._eq: tuple[torch.Tensor, torch.Tensor] | None = None
-
-    def equation_scale(self, spec: HybridSpec) -> tuple[torch.Tensor, torch.Tensor]:
-        """The sparsity penalty's per-equation scales (computed once)."""
-        if self._eq is None:
-            self._eq = _equation_scale(self.problem, spec, self.params_seg, self.ref)
-        return self._eq
-
-
 class _Stack:
     """The active models' stacked trainable tensors, their AdamW state, and the batched solves."""
 
@@ -394,8 +295,7 @@ class _Stack:
     EPS = 1e-8
     MAX_NORM = 10.0
 
-    def __init__(self, members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
-                 shared: _Shared | None = None) -> None:
+    def __init__(self, members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig) -> None:
         order = list(ACTIVATIONS)  # models of one activation side by side (see _Net)
         members = sorted(members, key=lambda mem: order.index(mem.hybrid.spec.activation))
         self.members = members
@@ -415,56 +315,31 @@ class _Stack:
         self.params: list[tuple[torch.Tensor, torch.Tensor | None, bool, bool]] = [(p, mk, True, True) for p, mk in zip(net_params, masks)]
         if self.est_idx:
             self.params.append((torch.stack([m.hybrid.est_raw.detach() for m in members]), None, False, True))
-        self.params.append((torch.stack([torch.zeros_like(m.seg0) if m.free is None else m.free for m in members]),
-                            None, False, False))
+        self.params.append((torch.zeros(len(members), *members[0].seg0.shape, dtype=dtype), None, False, False))
         tensors = [p.detach().clone().requires_grad_(True) for p, *_ in self.params]
         self.params = [(t, mk, decay, clip) for t, (_, mk, decay, clip) in zip(tensors, self.params)]
         self._bind_tensors(tensors)
-        self.exp_avg, self.exp_avg_sq = (self._stacked_moments(k) for k in (0, 1))
-        self.steps = torch.tensor([m.steps for m in members], dtype=dtype)  # AdamW steps of each model
+        self.exp_avg = [torch.zeros_like(p) for p, *_ in self.params]
+        self.exp_avg_sq = [torch.zeros_like(p) for p, *_ in self.params]
+        self.step_count = 0
         self.weight_decay = torch.tensor([float(m.cfg.train.weight_decay) for m in members], dtype=dtype)
         self.sparsity = torch.tensor([float(m.cfg.train.get("sparsity", 0.0)) for m in members], dtype=dtype)
         self.mean = self.template.mean
         self.std = self.template.std
-        # shared pieces of the training solve (as in train()) and of the evaluations
-        self.shared = shared if shared is not None else _Shared(problem, ref, plan, cfg)
-        sh = self.shared
-        self.fixed_first, self.state_scale, self.out_std = sh.fixed_first, sh.state_scale, sh.out_std
-        self.params_seg, self.has_next, self.cont_w = sh.params_seg, sh.has_next, sh.cont_w
-        self.eq_coef, self.eq_ref = (sh.equation_scale(self.spec)
+        # shared pieces of the training solve (as in train())
+        tm = _train_mask(problem, ref.batch)
+        self.fixed_first = ref.batch.u0[plan.exp_index]
+        self.state_scale = ref.states[tm].std(0).clamp_min(1e-3)
+        self.out_std = _output_spread(ref.batch.obs[tm])
+        self.params_seg = ref.batch.params[plan.exp_index]
+        self.has_next = plan.next_of >= 0
+        self.cont_w = float(cfg.train.continuity_weight)
+        self.eq_coef, self.eq_ref = (_equation_scale(problem, self.spec, self.params_seg, ref)
                                      if bool((self.sparsity > 0).any()) and self.spec.corrected else (None, None))
-        self.checked, self.eval_batch, self.full_batch = sh.checked, sh.eval_batch, sh.full_batch
+        self.checked = checkpoint_problem(problem)  # checkpoints simulate train/validation experiments only
+        self.eval_batch = make_batch(self.checked.experiments, problem.compiled, dtype)
+        self.full_batch = self.eval_batch if self.checked is problem else make_batch(problem.experiments, problem.compiled, dtype)
         self._rows_changed()
-
-    def _stacked_moments(self, k: int) -> list[torch.Tensor]:
-        """AdamW moment ``k`` (0: mean, 1: uncentred variance) of every trainable tensor, stacked from
-        the members' own (zero for a model that has not trained yet), padded like the parameters."""
-        n_net = 2 * len(self.net.weights)
-        nets, extras = [], []
-        for mem in self.members:
-            like = _net_tensors(mem.hybrid)
-            own = mem.moments[k] if mem.moments is not None else None
-            nets.append(own[:len(like)] if own is not None else [torch.zeros_like(t) for t in like])
-            extras.append(own[len(like):] if own is not None else None)
-        out, _ = _pad(nets, [tuple(w.shape[1:]) for w in self.net.weights], self.dtype)  # type: ignore[misc]
-        for j, (p, *_) in enumerate(self.params[n_net:]):
-            out.append(torch.stack([torch.zeros_like(p[i]) if e is None else e[j] for i, e in enumerate(extras)]))
-        return out
-
-    def release(self) -> list[_Member]:
-        """Every member with its whole trainable state written back into it (network and estimates
-        into its hybrid; segment offsets, AdamW moments and step count into the member), so that it
-        can join another stack and go on exactly where it was."""
-        n_net = 2 * len(self.net.weights)
-        for pos, mem in enumerate(self.members):
-            self.write_back(pos)
-            like = _net_tensors(mem.hybrid)
-            mem.moments = tuple(  # type: ignore[assignment]
-                _unpad(moment[:n_net], pos, like) + [t[pos].clone() for t in moment[n_net:]]
-                for moment in (self.exp_avg, self.exp_avg_sq))
-            mem.free = self.free.detach()[pos].clone()
-            mem.steps = int(self.steps[pos])
-        return self.members
 
     # -- bookkeeping ----------------------------------------------------------------------------------
     @property
@@ -491,7 +366,6 @@ class _Stack:
         self.exp_avg = [t[rows].clone() for t in self.exp_avg]
         self.exp_avg_sq = [t[rows].clone() for t in self.exp_avg_sq]
         self.seg0 = self.seg0[rows]
-        self.steps = self.steps[rows]
         self.weight_decay = self.weight_decay[rows]
         self.sparsity = self.sparsity[rows]
         self.members = [self.members[i] for i in positions]
@@ -516,13 +390,9 @@ class _Stack:
             p[:, :, self.est_idx] = values[:, None, :].to(p.dtype)
         return p.reshape(m * rows, -1)
 
-    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor, *,
-                     raw: bool = False) -> torch.Tensor:
-        """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own network
-        (``raw``: ``net`` takes the features unnormalised, see :meth:`_raw`)."""
-        z = self.template.features(u, x, p)
-        if not raw:
-            z = (z - self.mean) / self.std
+    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own network."""
+        z = (self.template.features(u, x, p) - self.mean) / self.std
         *lead, rows, n_feat = z.shape
         r = rows // m
         if not lead:
@@ -531,14 +401,6 @@ class _Stack:
         out = net(zz)
         return out.reshape(m, *lead, r, -1).movedim(0, -3).reshape(*lead, rows, -1)
 
-    def _raw(self, net: _Net) -> _Net:
-        """``net`` with the features' normalisation folded into its first layer (``W/σ``, ``b − (μ/σ)·W/σ``...):
-        the same function of the raw features, two operations fewer in every right-hand side."""
-        w, b = net.weights[0], net.biases[0]
-        scaled = w / self.std[None, :, None]
-        bias = b - torch.matmul(self.mean[None, None, :], scaled)
-        return _Net([scaled, *net.weights[1:]], [bias, *net.biases[1:]], net.use, net.activations, net.scale)
-
     def _rhs(self, net: _Net, m: int, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``f(u, x) -> du/dt`` over stacked rows, structured as :meth:`HybridModel.rhs`."""
         physics = self.problem.compiled.bind(p)
@@ -546,13 +408,12 @@ class _Stack:
         n = len(self.problem.compiled.state_names)
         if not idx:
             return physics
-        net = self._raw(net)
         if len(idx) == n and idx == list(range(n)):
-            return lambda u, x: physics(u, x) + self._corrections(net, m, u, x, p, raw=True)
+            return lambda u, x: physics(u, x) + self._corrections(net, m, u, x, p)
         index = torch.tensor(idx, dtype=torch.long)
 
         def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-            corr = self._corrections(net, m, u, x, p, raw=True)
+            corr = self._corrections(net, m, u, x, p)
             du = physics(u, x)
             if du.shape[:-1] != corr.shape[:-1]:
                 lead = torch.broadcast_shapes(du.shape[:-1], corr.shape[:-1])
@@ -595,9 +456,9 @@ class _Stack:
             p.grad = None
         loss[rows].sum().backward()
         b1, b2 = self.BETAS
-        self.steps = self.steps + 1
-        bc1 = 1 - b1**self.steps  # (M,): each model's own bias corrections
-        bc2_sqrt = (1 - b2**self.steps).sqrt()
+        self.step_count += 1
+        bc1 = 1 - b1**self.step_count
+        bc2_sqrt = (1 - b2**self.step_count) ** 0.5
         with torch.no_grad():
             grads = []
             for p, mk, _, _ in self.params:
@@ -617,8 +478,8 @@ class _Stack:
                     p.mul_(1 - lr_p * self.weight_decay.reshape(shape))
                 ea.lerp_(g, 1 - b1)
                 eas.mul_(b2).addcmul_(g, g, value=1 - b2)
-                denom = (eas.sqrt() / bc2_sqrt.reshape(shape)).add_(self.EPS)
-                p.add_((-(lr_p / bc1.reshape(shape))) * ea / denom)
+                denom = (eas.sqrt() / bc2_sqrt).add_(self.EPS)
+                p.add_((-(lr_p / bc1)) * ea / denom)
 
     # -- the warm start, batched ---------------------------------------------------------------------------
     def warm_fit(self, forced: Forced, *, iterations: int, window: int) -> None:
@@ -651,36 +512,29 @@ class _Stack:
         self.seg0 = torch.where(want[:, None, None], chained, self.seg0)
 
     # -- evaluation ----------------------------------------------------------------------------------------
-    def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False, whole: bool | None = None
+    def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False
                  ) -> list[tuple[dict[str, float], torch.Tensor] | BaseException]:
         """Whole-trajectory metrics of the models at ``positions`` in one batched solve (per model on failure).
 
         Checkpoints simulate the train and validation experiments; ``full`` every experiment
-        (test ones included), as a final evaluation does. Experiments recorded at different times
-        are solved apart (:func:`_time_grid_parts`) unless ``whole`` (default: ``full``): then the
-        returned outputs have a value at every time of the batch (for figures), not only at each
-        experiment's own.
+        (test ones included), as a final evaluation does.
         """
         m = len(positions)
         problem = self.problem if full else self.checked
         batch = self.full_batch if full else self.eval_batch
         b = batch.size
         rows = torch.tensor(positions, dtype=torch.long)
+        rep = torch.arange(b).repeat(m)
+        names = [f"{self.members[i].slot}:{e}" for i in positions for e in batch.ids]
+        batch_m = dataclasses.replace(batch, ids=names, inputs=batch.inputs.select(rep), params=batch.params[rep],
+                                      u0=batch.u0[rep], obs=batch.obs[:, rep], split_time=batch.split_time[rep])
         net = self.net.select(rows)
         est = None if self.est_raw is None else self.est_raw.detach()[rows]
-        whole = full if whole is None else whole
-        parts = [(list(range(b)), batch, None)] if whole else self.shared.full_parts if full else self.shared.parts
         try:
             with torch.no_grad():
-                if len(parts) == 1:
-                    y = self._simulate(net, est, positions, batch, sim)
-                else:  # (T, M, B, k) on the union of times; each experiment set only where it has times
-                    y = torch.full((batch.t.shape[0], m, b, len(self.problem.compiled.output_names)), math.nan,
-                                   dtype=self.dtype)
-                    for exps, part, at in parts:
-                        y_part = self._simulate(net, est, positions, part, sim)
-                        y[at[:, None], :, torch.tensor(exps)[None, :]] = y_part.reshape(-1, m, len(exps), y.shape[-1]).movedim(1, 2)
-                    y = y.reshape(y.shape[0], m * b, -1)
+                p = self._parameters_for(batch.params, est, m)  # (M·B, n_params)
+                states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
+                y = self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
         except Exception:  # noqa: BLE001 - one model's failure must not end the others: solve each alone
             return [self._evaluate_alone(i, sim, problem) for i in positions]
         out: list[tuple[dict[str, float], torch.Tensor] | BaseException] = []
@@ -691,19 +545,6 @@ class _Stack:
             except TrainingDiverged as exc:
                 out.append(exc)
         return out
-
-    def _simulate(self, net: _Net, est: torch.Tensor | None, positions: list[int], batch: Batch,
-                  sim: dict[str, Any]) -> torch.Tensor:
-        """Outputs ``(T, M·B, k)`` of the models at ``positions`` (networks ``net``, estimates ``est``)
-        on every experiment of ``batch``, rows model-major, in one adaptive solve."""
-        m, b = len(positions), batch.size
-        rep = torch.arange(b).repeat(m)
-        names = [f"{self.members[i].slot}:{e}" for i in positions for e in batch.ids]
-        batch_m = dataclasses.replace(batch, ids=names, inputs=batch.inputs.select(rep), params=batch.params[rep],
-                                      u0=batch.u0[rep], obs=batch.obs[:, rep], split_time=batch.split_time[rep])
-        p = self._parameters_for(batch.params, est, m)  # (M·B, n_params)
-        states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
-        return self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
 
     def _evaluate_alone(self, position: int, sim: dict[str, Any], problem: Problem
                         ) -> tuple[dict[str, float], torch.Tensor] | BaseException:
@@ -746,15 +587,13 @@ def _warm_settings(cfg: DictConfig) -> tuple[str, int, int]:
     return str(tc.get("warm_start", "auto")), int(tc.get("warm_iterations", 400)), window
 
 
-def _shared_warm_start(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting,
-                       forced: Forced | None = None) -> tuple[Forced, int, int] | None:
+def _shared_warm_start(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting) -> tuple[Forced, int, int] | None:
     """The warm start every model asks for (``auto``, the same settings): the forced trajectories
-    (``forced``, or computed here: they depend only on the records and the initial parameter
-    estimates, which the stack shares), with each member's segment starts and schedule set as
-    :func:`_prepare` would; None where no output is a state (no warm start, as alone)."""
+    (computed once: they depend only on the records and the initial parameter estimates, which the
+    stack shares), with each member's segment starts and schedule set as :func:`_prepare` would;
+    None where no output is a state (no warm start, as alone)."""
     _, iterations, window = _warm_settings(members[0].cfg)
-    if forced is None:
-        forced = forced_trajectories(problem, ref.batch, members[0].hybrid, float(members[0].cfg.train.step))
+    forced = forced_trajectories(problem, ref.batch, members[0].hybrid, float(members[0].cfg.train.step))
     if forced is None:
         return None
     for mem in members:
@@ -765,7 +604,7 @@ def _shared_warm_start(members: list[_Member], problem: Problem, ref: Reference,
 
 
 def _warm_fit(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
-              forced: Forced, iterations: int, window: int, shared: _Shared | None = None) -> None:
+              forced: Forced, iterations: int, window: int) -> None:
     """Every member's warm start: one batched regression of the models this process has not
     warm-started before (:func:`physmend.ude.warmstart.warm_key`: same network as initialised, data
     and settings); the others reuse the stored result, which is what the regression would give."""
@@ -776,7 +615,7 @@ def _warm_fit(members: list[_Member], problem: Problem, ref: Reference, plan: Sh
         if key not in todo and not recall(key, mem.hybrid):
             todo[key] = mem
     if todo:
-        sub = _Stack(list(todo.values()), problem, ref, plan, cfg, shared)
+        sub = _Stack(list(todo.values()), problem, ref, plan, cfg)
         sub.warm_fit(forced, iterations=iterations, window=window)
         for pos in range(sub.size):
             sub.write_back(pos)
@@ -814,10 +653,9 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
             model ``i`` only and becomes its result.
         final_eval: ``"own"``: each model's final metrics come from its own solo evaluation, exactly as
             ``train()`` computes them (a reloaded model reproduces them); costs one solo solve per
-            model. ``"batched"``: the best checkpoints of the models that finish together are
-            simulated on every experiment in one batched solve (the adaptive solver takes the steps
-            the most demanding model needs, so each agrees with its solo evaluation to the solver
-            tolerance).
+            model. ``"batched"``: the best checkpoints of all finished models are simulated on every
+            experiment in one batched solve (the adaptive solver takes the steps the most demanding
+            model needs, so each agrees with its solo evaluation to the solver tolerance).
         figures: attach the fit figures (one per experiment) to each result.
 
     Returns:
@@ -834,207 +672,55 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
     if not cfgs:
         return []
     _check_shared(cfgs)
+    cfg0 = cfgs[0]
+    ref = reference(problem, cfg0)
+    plan = plan_shooting(problem, ref.batch, cfg0)
     results: list[TrainResult | BaseException | None] = [None] * len(cfgs)
-
-    def finish(slot: int, result: TrainResult | BaseException) -> None:
-        results[slot] = result
-
-    pool = TrainingPool(finish, report=report, final_eval=final_eval, figures=figures)
-    pool.join([(i, cfg, problem) for i, cfg in enumerate(cfgs)])
-    while pool.live:
-        pool.epoch()
+    members: list[_Member] = []
+    warm_settings = {_warm_settings(cfg) for cfg in cfgs}
+    batched_warm = len(warm_settings) == 1 and next(iter(warm_settings))[0] == "auto"
+    for i, cfg in enumerate(cfgs):
+        try:
+            members.append(_prepare(cfg, problem, ref, plan, i, warm=not batched_warm))
+        except Exception as exc:  # noqa: BLE001 - train(cfg) would have raised it: this trial's outcome
+            results[i] = exc
+    if members:
+        _check_same_shape(members)
+        warm = _shared_warm_start(members, problem, ref, plan) if batched_warm else None
+        finished = _run(members, problem, ref, plan, cfg0, report, warm)
+        sim = _sim_opts(cfg0)
+        done = [mem for mem in finished if mem.outcome is None]
+        final = _final_batched(done, problem, ref, plan, cfg0, sim) if final_eval == "batched" and done else {}
+        for mem in finished:
+            results[mem.slot] = mem.outcome if mem.outcome is not None else _result(mem, problem, ref, sim, final.get(mem.slot), figures)
     assert all(r is not None for r in results)
     return results  # type: ignore[return-value]
 
 
-Finish = Callable[[int, "TrainResult | BaseException"], None]
+def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
+         report: Report | None, warm: tuple[Forced, int, int] | None = None) -> list[_Member]:
+    """The shared epoch loop (after the batched warm start ``warm``: forced trajectories, iterations,
+    window); returns every member, each with a best checkpoint or an outcome."""
+    tc = cfg.train
+    if warm is not None:
+        _warm_fit(members, problem, ref, plan, cfg, *warm)
+    stack = _Stack(members, problem, ref, plan, cfg)
+    if warm is not None:
+        stack.chain_starts()
+    sim = _sim_opts(cfg)
+    epochs = int(tc.epochs)
+    eval_every = max(1, int(tc.eval_every))
+    patience = int(tc.patience)
 
-
-class _Lane:
-    """The models of a pool that share a problem and every setting in :data:`SHARED_KEYS`: one stack,
-    refilled as models join, with the reference, shooting plan and forced trajectories computed once."""
-
-    def __init__(self, cfg: DictConfig, problem: Problem) -> None:
-        self.cfg, self.problem = cfg, problem
-        self.ref = reference(problem, cfg)
-        self.plan = plan_shooting(problem, self.ref.batch, cfg)
-        self.shared = _Shared(problem, self.ref, self.plan, cfg)
-        self.sim = _sim_opts(cfg)
-        self.epochs = int(cfg.train.epochs)
-        self.eval_every = max(1, int(cfg.train.eval_every))
-        self.patience = int(cfg.train.patience)
-        self.stack: _Stack | None = None
-        self._forced: list[Forced | None] = []  # computed once, on the first warm start
-
-    def new_stack(self, members: list[_Member]) -> _Stack:
-        return _Stack(members, self.problem, self.ref, self.plan, self.cfg, self.shared)
-
-    def forced(self, member: _Member) -> Forced | None:
-        if not self._forced:
-            self._forced.append(forced_trajectories(self.problem, self.ref.batch, member.hybrid, float(self.cfg.train.step)))
-        return self._forced[0]
-
-    def add(self, members: list[_Member]) -> None:
-        """Let ``members`` join the stack (re-padded to the largest network of all)."""
-        old = self.stack.release() if self.stack is not None else []
-        self.stack = self.new_stack(old + members)
-
-    def shrink(self, positions: list[int]) -> None:
-        """Keep the models at ``positions``; re-pad when the largest network has left."""
-        stack = self.stack
-        assert stack is not None
-        stack.keep(positions)
-        if not stack.members:
-            self.stack = None
-            return
-        dims = _dims([mem.hybrid.spec for mem in stack.members])
-        if dims != [tuple(w.shape[1:]) for w in stack.net.weights]:
-            self.stack = self.new_stack(stack.release())
-
-
-class TrainingPool:
-    """Models trained together and refilled as they finish: the continuous form of :func:`train_stack`.
-
-    Models :meth:`join` at any time; each :meth:`epoch` trains every live model one epoch (models of
-    one problem and the same :data:`SHARED_KEYS` settings in one batched solve), evaluates those whose
-    checkpoint is due, and hands every model that stopped (its epochs done, early stopping, an
-    exception of ``report``, divergence) to ``finish(slot, result)`` at once, as its
-    :class:`TrainResult` or exception. A model's course is the one it would have in
-    :func:`train_stack` (its own epochs, schedule, AdamW state, checkpoints and patience) whoever
-    else shares its stack when; so a sweep keeps its stacks full by asking for new trials as others
-    finish, instead of waiting for the slowest trial of a group.
-    """
-
-    def __init__(self, finish: Finish, *, report: Report | None = None, final_eval: str = "batched",
-                 figures: bool = True) -> None:
-        if final_eval not in ("own", "batched"):
-            raise UDEConfigError(f"final_eval must be 'own' or 'batched', but got {final_eval!r}")
-        self.finish, self.report, self.final_eval, self.figures = finish, report, final_eval, figures
-        self.lanes: dict[Any, _Lane] = {}
-
-    @property
-    def live(self) -> int:
-        """Models in training."""
-        return sum(lane.stack.size for lane in self.lanes.values() if lane.stack is not None)
-
-    @property
-    def aligned(self) -> bool:
-        """Whether every live model has just had a checkpoint (or has none live): the time for new
-        models to join. Models that join then keep their checkpoints on the same epochs as the
-        others, so each stack is evaluated in one solve per ``train.eval_every`` epochs, not in one
-        solve per set of models that happened to join together."""
-        return all(mem.epoch % lane.eval_every == 0
-                   for lane in self.lanes.values() if lane.stack is not None for mem in lane.stack.members)
-
-    # -- joining -------------------------------------------------------------------------------------------
-    def join(self, entries: Sequence[tuple[int, DictConfig, Problem]]) -> None:
-        """Start models ``(slot, cfg, problem)``: each is built, warm-started and evaluated at epoch 0 as
-        :func:`train` does it (those that join together in one batched regression and solve), then
-        trains with the others from the next :meth:`epoch` on."""
-        groups: dict[Any, list[tuple[int, DictConfig, Problem]]] = {}
-        for slot, cfg, problem in entries:
-            groups.setdefault((stack_key(cfg), id(problem)), []).append((slot, cfg, problem))
-        for key, group in groups.items():
-            lane = self.lanes.get(key)
-            if lane is None:
-                try:
-                    lane = _Lane(group[0][1], group[0][2])
-                except Exception as exc:  # noqa: BLE001 - e.g. the model as written cannot be simulated
-                    for slot, *_ in group:
-                        self.finish(slot, exc)
-                    continue
-                self.lanes[key] = lane
-            self._join(lane, [(slot, cfg) for slot, cfg, _ in group])
-
-    def _join(self, lane: _Lane, entries: list[tuple[int, DictConfig]]) -> None:
-        settings = {_warm_settings(cfg) for _, cfg in entries}
-        batched_warm = len(settings) == 1 and next(iter(settings))[0] == "auto"
-        members: list[_Member] = []
-        for slot, cfg in entries:
-            try:
-                members.append(_prepare(cfg, lane.problem, lane.ref, lane.plan, slot, warm=not batched_warm))
-            except Exception as exc:  # noqa: BLE001 - train(cfg) would have raised it: this model's outcome
-                self.finish(slot, exc)
-        if not members:
-            return
-        _check_same_shape(([lane.stack.members[0]] if lane.stack is not None else []) + members)
-        try:
-            warm = None
-            if batched_warm:
-                warm = _shared_warm_start(members, lane.problem, lane.ref, lane.plan, forced=lane.forced(members[0]))
-                if warm is not None:
-                    _warm_fit(members, lane.problem, lane.ref, lane.plan, lane.cfg, *warm, shared=lane.shared)
-            fresh = lane.new_stack(members)
-            if warm is not None:
-                fresh.chain_starts()
-            for pos, mem in enumerate(fresh.members):
-                mem.seg0 = fresh.seg0[pos]
-            warmed = [i for i, mem in enumerate(fresh.members) if mem.forced is not None]
-            if warmed:  # a warm start itself is a candidate (it may already be the best fit), as in train()
-                self._checkpoint(lane, fresh, warmed, None, None)
-        except Exception as exc:  # noqa: BLE001 - the batched warm start failed: each model's outcome
-            for mem in members:
-                self.finish(mem.slot, exc)
-            return
-        for mem in fresh.members:
-            mem.done = mem.done or mem.epoch >= lane.epochs
-        done = [mem for mem in fresh.members if mem.done]
-        going = [mem for mem in fresh.members if not mem.done]
-        if going:
-            lane.add(going)
-        if done:
-            self._finish(lane, done)
-
-    # -- training ------------------------------------------------------------------------------------------
-    def epoch(self) -> None:
-        """One epoch of every live model; checkpoints where due; finished models handed to ``finish``."""
-        for lane in list(self.lanes.values()):
-            if lane.stack is None:
-                continue
-            try:
-                self._epoch(lane)
-            except Exception as exc:  # noqa: BLE001 - the shared solve itself failed: each model's outcome
-                for mem in lane.stack.members:
-                    if mem.outcome is None:
-                        mem.outcome = exc
-                    mem.done = True
-            done = [mem for mem in lane.stack.members if mem.done]
-            if done:
-                lane.shrink([i for i, mem in enumerate(lane.stack.members) if not mem.done])
-                self._finish(lane, done)
-
-    def _epoch(self, lane: _Lane) -> None:
-        stack = lane.stack
-        assert stack is not None
-        loss, fit = stack.losses()
-        ok = torch.isfinite(loss.detach())
-        for pos in torch.nonzero(~ok).flatten().tolist():
-            mem = stack.members[pos]
-            mem.outcome = TrainingDiverged(f"training loss became non-finite at epoch {mem.epoch + 1} "
-                                           f"(lr {float(mem.cfg.train.lr):g}); try a smaller train.lr or train.step")
-            mem.done = True
-        if bool(ok.any()):
-            lr = torch.tensor([mem.lrs[mem.epoch] for mem in stack.members], dtype=stack.dtype)
-            stack.step(loss, lr, torch.nonzero(ok).flatten())
-        for mem in stack.members:
-            mem.epoch += 1
-        due = [i for i, mem in enumerate(stack.members)
-               if not mem.done and (mem.epoch % lane.eval_every == 0 or mem.epoch >= lane.epochs)]
-        if due:
-            self._checkpoint(lane, stack, due, loss.detach(), fit.detach())
-        for mem in stack.members:
-            mem.done = mem.done or mem.epoch >= lane.epochs
-
-    def _checkpoint(self, lane: _Lane, stack: _Stack, positions: list[int], loss: torch.Tensor | None,
-                    fit: torch.Tensor | None) -> None:
+    def checkpoint(positions: list[int], epoch: int, loss: torch.Tensor | None, fit: torch.Tensor | None) -> None:
         """Evaluate the models at ``positions``; mark those whose patience ran out or that failed as done."""
-        for pos, outcome in zip(positions, stack.evaluate(positions, lane.sim)):
+        for pos, outcome in zip(positions, stack.evaluate(positions, sim)):
             mem = stack.members[pos]
             if isinstance(outcome, BaseException):
                 mem.outcome, mem.done = outcome, True
                 continue
             metrics, _ = outcome
-            row = {"epoch": float(mem.epoch),
+            row = {"epoch": float(epoch),
                    "loss": float("nan") if loss is None else float(loss[pos]),
                    "fit_loss": float("nan") if fit is None else float(fit[pos]),
                    **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
@@ -1045,50 +731,53 @@ class TrainingPool:
                 mem.since_best = 0
             else:
                 mem.since_best += 1
-            if self.report is not None:
+            if report is not None:
                 try:
-                    self.report(mem.slot, mem.epoch, row)
+                    report(mem.slot, epoch, row)
                 except Exception as exc:  # noqa: BLE001 - e.g. a pruning signal: this model stops
                     mem.outcome, mem.done = exc, True
                     continue
-            if lane.patience > 0 and mem.since_best >= lane.patience:
+            if patience > 0 and mem.since_best >= patience:
                 mem.done = True
 
-    def _finish(self, lane: _Lane, members: list[_Member]) -> None:
-        """Results of stopped models (the final evaluation of those that did not fail), then ``finish``."""
-        ok = [mem for mem in members if mem.outcome is None and mem.best is not None]
-        final: dict[int, Any] = {}
-        if self.final_eval == "batched" and ok:
-            try:
-                final = _final_batched(ok, lane, whole=self.figures)
-            except Exception as exc:  # noqa: BLE001 - each model's outcome
-                final = {mem.slot: exc for mem in ok}
-        results: list[tuple[int, TrainResult | BaseException]] = []
-        for mem in members:
-            result: TrainResult | BaseException
-            if mem.outcome is not None:
-                result = mem.outcome
-            elif mem.best is None:
-                result = TrainingDiverged("the model stopped before its first evaluation (train.epochs = 0 and no warm start)")
-            else:
-                try:
-                    result = _result(mem, lane.problem, lane.ref, lane.sim, final.get(mem.slot), self.figures)
-                except Exception as exc:  # noqa: BLE001 - e.g. the solo evaluation failed
-                    result = exc
-            results.append((mem.slot, result))
-        for slot, result in results:
-            self.finish(slot, result)
+    def drop_done() -> None:
+        stack.keep([i for i, mem in enumerate(stack.members) if not mem.done])
+
+    warm = [i for i, mem in enumerate(stack.members) if mem.forced is not None]
+    if warm:  # a warm start itself is a candidate (it may already be the best fit), as in train()
+        checkpoint(warm, 0, None, None)
+        drop_done()
+    for epoch in range(1, epochs + 1):
+        if not stack.members:
+            break
+        loss, fit = stack.losses()
+        ok = torch.isfinite(loss.detach())
+        for pos in torch.nonzero(~ok).flatten().tolist():
+            mem = stack.members[pos]
+            lr0 = float(mem.cfg.train.lr)
+            mem.outcome = TrainingDiverged(f"training loss became non-finite at epoch {epoch} (lr {lr0:g}); "
+                                           "try a smaller train.lr or train.step")
+            mem.done = True
+        if bool(ok.any()):
+            lr = torch.tensor([mem.lrs[epoch - 1] for mem in stack.members], dtype=stack.dtype)
+            stack.step(loss, lr, torch.nonzero(ok).flatten())
+        loss, fit = loss.detach(), fit.detach()
+        if epoch % eval_every == 0 or epoch == epochs:
+            live = [i for i, mem in enumerate(stack.members) if not mem.done]
+            if live:
+                checkpoint(live, epoch, loss, fit)
+        drop_done()
+    return members
 
 
-def _final_batched(done: list[_Member], lane: _Lane, *, whole: bool = True
-                   ) -> dict[int, tuple[dict[str, float], torch.Tensor] | BaseException]:
-    """Every finished model's best checkpoint simulated on every experiment in one batched solve, by
-    slot (``whole``: outputs at every time of the batch, as figures need them)."""
+def _final_batched(done: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
+                   sim: dict[str, Any]) -> dict[int, tuple[dict[str, float], torch.Tensor] | BaseException]:
+    """Every finished model's best checkpoint simulated on every experiment in one batched solve, by slot."""
     for mem in done:
         assert mem.best is not None
         mem.hybrid.load_state_dict(mem.best[1])
-    stack = lane.new_stack(done)  # sorted by activation: map results back by slot
-    outcomes = stack.evaluate(list(range(stack.size)), lane.sim, full=True, whole=whole)
+    stack = _Stack(done, problem, ref, plan, cfg)  # sorted by activation: map results back by slot
+    outcomes = stack.evaluate(list(range(stack.size)), sim, full=True)
     return {mem.slot: outcome for mem, outcome in zip(stack.members, outcomes)}
 
 

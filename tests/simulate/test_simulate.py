@@ -126,3 +126,16 @@ def test_bound_rhs_equals_generic_rhs_with_gradients() -> None:
     slow.pow(2).sum().backward()
     assert p_slow.grad is not None and bool(p_slow.grad.abs().sum() > 0)
     torch.testing.assert_close(p_fast.grad, p_slow.grad, rtol=1e-10, atol=1e-14)
+
+
+def test_evaluation_times_must_not_decrease_and_the_error_names_them() -> None:
+    import torch
+
+    from physmend.simulate.rodas import odeint_rodas
+    from physmend.simulate.rosenbrock import odeint_rosenbrock
+
+    t = torch.tensor([0.0, 10.0, 5.0], dtype=torch.float64)
+    u0 = torch.zeros(1, 1, dtype=torch.float64)
+    for solve in (odeint_rodas, odeint_rosenbrock):
+        with pytest.raises(SimulationError, match=r"non-decreasing, but t\[2\] = 5 s follows t\[1\] = 10 s"):
+            solve(lambda tt, u: -u, u0, t)

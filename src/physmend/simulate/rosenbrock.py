@@ -155,7 +155,9 @@ def check_times(t: torch.Tensor) -> None:
     if t.ndim != 1 or t.numel() < 1:
         raise SimulationError(f"evaluation times must be a 1-D tensor, but got shape {tuple(t.shape)}")
     if t.numel() > 1 and not bool((t[1:] >= t[:-1]).all()):
-        raise SimulationError("evaluation times must be non-decreasing")
+        i = int(torch.nonzero(t[1:] < t[:-1]).flatten()[0])
+        raise SimulationError(f"evaluation times must be non-decreasing, but t[{i + 1}] = {float(t[i + 1]):g} s "
+                              f"follows t[{i}] = {float(t[i]):g} s")
 
 
 def _check_finite(v: torch.Tensor, tc: float, names: list[str], what: str) -> None:

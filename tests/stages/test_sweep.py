@@ -255,6 +255,8 @@ def test_diverging_trial_fails_pruned_trial_stops_sweep_goes_on(user_project: Pa
     assert bad.info.status == "FAILED" and bad.data.tags["physmend.trial_state"] == "FAIL"
     assert bad.data.tags["physmend.error"] == reason
     assert pruned.info.status == "KILLED" and pruned.data.tags["physmend.trial_state"] == "PRUNED"
+    because = "best third" if "sweep.pruner=halving" in pruner else "median"  # the message names the pruner's rule
+    assert pruned.data.tags["physmend.pruned"].startswith("pruned at epoch 2: val.rmse ") and because in pruned.data.tags["physmend.pruned"]
     assert [m.step for m in store.client.get_metric_history(pruned.info.run_id, "val.rmse")] == [0, 2]
     assert study.trials[2].intermediate_values and study.trials[2].intermediate_values[2] > study.trials[0].intermediate_values[2]
     parent = store.client.get_run(study.user_attrs[sw.PARENT_ATTR])

@@ -112,8 +112,18 @@ def test_a_warm_start_is_fitted_once_per_network_and_reused(short_project: Path,
     before = dict(WARM_STATS)
     first = train_stack(cfgs, problem, figures=False)
     assert WARM_STATS["fitted"] - before["fitted"] == 2 and WARM_STATS["reused"] - before["reused"] == 1
+    assert WARM_STATS["derived_reused"] == before["derived_reused"]  # one stack: nothing stored before it
     again = train_stack(cfgs, problem, figures=False)
     assert WARM_STATS["fitted"] - before["fitted"] == 2 and WARM_STATS["reused"] - before["reused"] == 4
+    # the second stack also reuses each warm start's checkpoint evaluation and chained segment starts
+    assert WARM_STATS["derived_reused"] - before["derived_reused"] == 2 * len(cfgs)
+    # other segments: the evaluation is reused, the chained starts (which depend on them) are not
+    longer = [c.copy() for c in cfgs]
+    for c in longer:
+        c.train.segment_length = 6.0
+    reused = WARM_STATS["derived_reused"]
+    train_stack(longer, problem, figures=False)
+    assert WARM_STATS["derived_reused"] - reused == len(cfgs)
     for a, b in zip(first, again):
         assert isinstance(a, TrainResult) and isinstance(b, TrainResult)
         assert a.val_rmse == b.val_rmse and repr(a.history) == repr(b.history)  # repr: NaN losses at epoch 0

@@ -405,6 +405,13 @@ class Settings:
             return optuna.samplers.RandomSampler(seed=seed)
         return optuna.samplers.TPESampler(seed=seed, n_startup_trials=self.n_startup_trials)
 
+    @property
+    def pruned_because(self) -> str:
+        """How a pruned trial's message ends: what its val.rmse was compared with."""
+        if self.pruner == "halving":
+            return "outside the best third of the trials that reached this epoch (successive halving)"
+        return "worse than the median of earlier trials at this epoch"
+
     def make_pruner(self) -> "optuna.pruners.BasePruner":
         import optuna
 
@@ -805,7 +812,7 @@ class Sweep:
         """Train one stack; then log each trial's buffered metrics and result to its own child run."""
         from physmend.ude.stacked import train_stack
 
-        reporters = [Reporter(trial, None) for trial, *_ in members]
+        reporters = [Reporter(trial, None, self.settings.pruned_because) for trial, *_ in members]
         try:
             results: list[Any] = train_stack([cfg for _, _, cfg, _ in members], members[0][3],
                                              report=lambda i, epoch, row: reporters[i](epoch, row),
@@ -949,7 +956,7 @@ class Sweep:
         from physmend.tracking import selection as sel
 
         with self._child_run(trial, values, cfg, holder) as run_:
-            reporter = Reporter(trial, run_)
+            reporter = Reporter(trial, run_, self.settings.pruned_because)
             try:
                 result = self.train(cfg, problem, report=reporter)
             except optuna.TrialPruned as exc:
@@ -1017,9 +1024,10 @@ class Sweep:
 class Reporter:
     """The ``report`` callback of one trial: per-epoch metrics to MLflow, pruning via Optuna."""
 
-    def __init__(self, trial: "optuna.Trial", run_: Any) -> None:
-        """``run_`` None: metrics are kept in ``buffered`` (a stacked trial's run is written afterwards)."""
-        self.trial, self.run_ = trial, run_
+    def __init__(self, trial: "optuna.Trial", run_: Any, because: str = "worse than the median of earlier trials at this epoch") -> None:
+        """``run_`` None: metrics are kept in ``buffered`` (a stacked trial's run is written afterwards);
+        ``because``: how the pruner compares (ends a pruned trial's message)."""
+        self.trial, self.run_, self.because = trial, run_, because
         self.last_epoch = 0
         self.last_value: float | None = None
         self.buffered: list[tuple[int, dict[str, float]]] = []
@@ -1040,7 +1048,7 @@ class Reporter:
         self.last_value = value
         self.trial.report(value, epoch)
         if self.trial.should_prune():
-            raise optuna.TrialPruned(f"pruned at epoch {epoch}: val.rmse {value:.4g} is worse than the median of earlier trials")
+            raise optuna.TrialPruned(f"pruned at epoch {epoch}: val.rmse {value:.4g} is {self.because}")
 
 
 def _log_result(run_: Any, result: Any, *, step: int, figures: bool = True) -> None:

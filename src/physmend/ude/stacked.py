@@ -76,7 +76,18 @@ from physmend.ude.train import (
     rk4_segments,
     simulate_with,
 )
-from physmend.ude.warmstart import Forced, fit_models, forced_trajectories, recall, remember, segment_starts, warm_key, warm_start
+from physmend.ude.warmstart import (
+    Forced,
+    fit_models,
+    forced_trajectories,
+    recall,
+    recall_derived,
+    remember,
+    remember_derived,
+    segment_starts,
+    warm_key,
+    warm_start,
+)
 
 __all__ = ["SHARED_KEYS", "stack_key", "train_stack"]
 
@@ -254,6 +265,37 @@ def _write_back(net: _Net, row: int, hybrid: HybridModel, est_raw: torch.Tensor 
             hybrid.est_raw.copy_(est_raw.detach()[row])
 
 
+def _plan_key(plan: Shooting) -> tuple[Any, ...]:
+    """What identifies a shooting plan's segments (step, steps per segment, starts, experiments)."""
+    return (plan.dt, plan.steps, tuple(plan.starts.tolist()), tuple(plan.exp_index.tolist()))
+
+
+#: reference simulations and shooting plans of the last few problems this process trained on: every
+#: stack of a sweep shares them (they depend on the problem and the solver and shooting settings only)
+_SETUPS: dict[int, tuple[Problem, dict[Any, Reference], dict[Any, Shooting]]] = {}
+_SETUPS_MAX = 4
+
+
+def _setup(problem: Problem, cfg: DictConfig) -> tuple[Reference, Shooting]:
+    """``(reference(problem, cfg), plan_shooting(problem, ref.batch, cfg))``, computed once per
+    problem, solver settings and shooting settings in this process."""
+    entry = _SETUPS.get(id(problem))
+    if entry is None or entry[0] is not problem:
+        if len(_SETUPS) >= _SETUPS_MAX:
+            _SETUPS.pop(next(iter(_SETUPS)))
+        entry = _SETUPS[id(problem)] = (problem, {}, {})
+    _, refs, plans = entry
+    ref_key = json.dumps(_sim_opts(cfg), sort_keys=True, default=str)
+    ref = refs.get(ref_key)
+    if ref is None:
+        ref = refs[ref_key] = reference(problem, cfg)
+    plan_key = (ref_key, float(cfg.train.step), float(cfg.train.segment_length))
+    plan = plans.get(plan_key)
+    if plan is None:
+        plan = plans[plan_key] = plan_shooting(problem, ref.batch, cfg)
+    return ref, plan
+
+
 # -- one model's bookkeeping ------------------------------------------------------------------------
 @dataclass
 class _Member:
@@ -270,6 +312,7 @@ class _Member:
     since_best: int = 0
     outcome: BaseException | None = None  # set when the model stops with an error
     done: bool = False
+    warm_key: str | None = None  # its stored warm start (:func:`physmend.ude.warmstart.warm_key`), if batched
 
 
 def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
@@ -498,18 +541,38 @@ class _Stack:
 
     def chain_starts(self) -> None:
         """After the batched warm start: the segment starts of every warm-started model that asks for
-        it (``train.segment_starts: chained``) chained by its own hybrid, as train() does."""
-        m = self.size
-        want = torch.tensor([mem.forced is not None and _chain(mem.cfg.train) for mem in self.members])
-        if not bool(want.any()):
+        it (``train.segment_starts: chained``) chained by its own hybrid, as train() does. They follow
+        from the warm start and the shooting plan alone: a model whose warm start an earlier stack of
+        this process had, on the same plan, reuses that stack's chained starts."""
+        want = [i for i, mem in enumerate(self.members) if mem.forced is not None and _chain(mem.cfg.train)]
+        if not want:
             return
+        name = ("chained", _plan_key(self.plan))
+        todo = []
+        for i in want:
+            key = self.members[i].warm_key
+            stored = None if key is None else recall_derived(key, name)
+            if stored is None:
+                todo.append(i)
+            else:
+                self.seg0[i] = stored
+        if not todo:
+            return
+        m = len(todo)
+        rows = torch.tensor(todo, dtype=torch.long)
         s, n = self.seg0.shape[1:]
         with torch.no_grad():
-            p = self._parameters_for(self.params_seg, self.est_raw, m)
-            u0 = torch.where(self.plan.first[None, :, None], self.fixed_first[None], self.seg0).reshape(m * s, n)
+            est = None if self.est_raw is None else self.est_raw.detach()[rows]
+            p = self._parameters_for(self.params_seg, est, m)
+            u0 = torch.where(self.plan.first[None, :, None], self.fixed_first[None], self.seg0[rows]).reshape(m * s, n)
             keep = next(mem.forced.measured for mem in self.members if mem.forced is not None)
-            chained = chained_starts(self._rhs(self.net, m, p), u0, self.plan_rows, models=m, keep=keep).reshape(m, s, n)
-        self.seg0 = torch.where(want[:, None, None], chained, self.seg0)
+            plan = dataclasses.replace(self.plan, x_half=self.plan.x_half.repeat(1, m, 1))
+            chained = chained_starts(self._rhs(self.net.select(rows), m, p), u0, plan, models=m, keep=keep).reshape(m, s, n)
+        for j, i in enumerate(todo):
+            self.seg0[i] = chained[j]
+            key = self.members[i].warm_key
+            if key is not None:
+                remember_derived(key, name, chained[j].clone())
 
     # -- evaluation ----------------------------------------------------------------------------------------
     def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False
@@ -622,6 +685,7 @@ def _warm_fit(members: list[_Member], problem: Problem, ref: Reference, plan: Sh
         for key, mem in todo.items():
             remember(key, mem.hybrid)
     for mem, key in zip(members, keys):
+        mem.warm_key = key
         if key in todo and todo[key] is not mem:
             recall(key, mem.hybrid)
 
@@ -673,8 +737,7 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
         return []
     _check_shared(cfgs)
     cfg0 = cfgs[0]
-    ref = reference(problem, cfg0)
-    plan = plan_shooting(problem, ref.batch, cfg0)
+    ref, plan = _setup(problem, cfg0)
     results: list[TrainResult | BaseException | None] = [None] * len(cfgs)
     members: list[_Member] = []
     warm_settings = {_warm_settings(cfg) for cfg in cfgs}
@@ -708,18 +771,29 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
     if warm is not None:
         stack.chain_starts()
     sim = _sim_opts(cfg)
+    checked_name = ("checkpoint", json.dumps(sim, sort_keys=True, default=str), id(problem))
     epochs = int(tc.epochs)
     eval_every = max(1, int(tc.eval_every))
     patience = int(tc.patience)
 
-    def checkpoint(positions: list[int], epoch: int, loss: torch.Tensor | None, fit: torch.Tensor | None) -> None:
-        """Evaluate the models at ``positions``; mark those whose patience ran out or that failed as done."""
-        for pos, outcome in zip(positions, stack.evaluate(positions, sim)):
+    def checkpoint(positions: list[int], epoch: int, loss: torch.Tensor | None, fit: torch.Tensor | None,
+                   known: dict[int, dict[str, float]] | None = None) -> None:
+        """Evaluate the models at ``positions`` (``known``: metrics of some already, by position); mark
+        those whose patience ran out or that failed as done."""
+        known = known or {}
+        todo = [pos for pos in positions if pos not in known]
+        outcomes: dict[int, tuple[dict[str, float], Any] | BaseException] = {pos: (known[pos], None) for pos in positions if pos in known}
+        if todo:
+            outcomes.update(zip(todo, stack.evaluate(todo, sim)))
+        for pos in positions:
+            outcome = outcomes[pos]
             mem = stack.members[pos]
             if isinstance(outcome, BaseException):
                 mem.outcome, mem.done = outcome, True
                 continue
             metrics, _ = outcome
+            if epoch == 0 and pos not in known and mem.warm_key is not None:
+                remember_derived(mem.warm_key, checked_name, (problem, dict(metrics)))
             row = {"epoch": float(epoch),
                    "loss": float("nan") if loss is None else float(loss[pos]),
                    "fit_loss": float("nan") if fit is None else float(fit[pos]),
@@ -745,7 +819,14 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
 
     warm = [i for i, mem in enumerate(stack.members) if mem.forced is not None]
     if warm:  # a warm start itself is a candidate (it may already be the best fit), as in train()
-        checkpoint(warm, 0, None, None)
+        # its evaluation follows from the warm start alone: an earlier stack of this process may have it
+        known = {}
+        for pos in warm:
+            key = stack.members[pos].warm_key
+            stored = None if key is None else recall_derived(key, checked_name)
+            if stored is not None and stored[0] is problem:
+                known[pos] = dict(stored[1])
+        checkpoint(warm, 0, None, None, known)
         drop_done()
     for epoch in range(1, epochs + 1):
         if not stack.members:

@@ -268,8 +268,11 @@ def segment_starts(forced: Forced, exp_index: torch.Tensor, starts: torch.Tensor
 #: a seed (they differ in learning rate, weight decay …) start from the same fitted network
 _WARM: dict[str, tuple[Any, dict[str, torch.Tensor]]] = {}
 _WARM_MAX = 256
+#: what else follows from a stored warm start alone, by key and name (its checkpoint evaluation,
+#: its chained segment starts on one shooting plan): computed once, reused by later trials
+_DERIVED: dict[str, dict[Any, Any]] = {}
 #: how many warm starts this process fitted and how many it reused (for tests and benchmarks)
-WARM_STATS = {"fitted": 0, "reused": 0}
+WARM_STATS = {"fitted": 0, "reused": 0, "derived_reused": 0}
 
 
 def warm_key(hybrid: HybridModel, forced: Forced, params: torch.Tensor, iterations: int, window: int) -> str:
@@ -299,14 +302,32 @@ def recall(key: str, hybrid: HybridModel) -> bool:
 def remember(key: str, hybrid: HybridModel) -> None:
     """Store ``hybrid``'s warm-started state under ``key`` (the oldest entry goes when full)."""
     if len(_WARM) >= _WARM_MAX:
-        _WARM.pop(next(iter(_WARM)))
+        oldest = next(iter(_WARM))
+        _WARM.pop(oldest)
+        _DERIVED.pop(oldest, None)
     _WARM[key] = (hybrid.compiled, {k: v.detach().clone() for k, v in hybrid.state_dict().items()})
     WARM_STATS["fitted"] += 1
 
 
+def recall_derived(key: str, name: Any) -> Any | None:
+    """What :func:`remember_derived` stored for the warm start ``key`` under ``name``; None if nothing."""
+    value = _DERIVED.get(key, {}).get(name)
+    if value is not None:
+        WARM_STATS["derived_reused"] += 1
+    return value
+
+
+def remember_derived(key: str, name: Any, value: Any) -> None:
+    """Store ``value``, computed from the warm start ``key`` alone (nothing a trial's own training
+    settings change), under ``name``: kept as long as the warm start itself."""
+    if key in _WARM:
+        _DERIVED.setdefault(key, {})[name] = value
+
+
 def forget_warm_starts() -> None:
-    """Drop every stored warm start (tests that compare two ways of computing one)."""
+    """Drop every stored warm start and what was derived from it (tests that compare two ways of computing one)."""
     _WARM.clear()
+    _DERIVED.clear()
 
 
 def warm_start(hybrid: HybridModel, problem: Problem, batch: Batch, cfg: Any) -> Forced | None:

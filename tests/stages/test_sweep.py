@@ -114,6 +114,18 @@ def test_bad_search_spaces_name_file_and_key(params: dict[str, Any], message: st
     assert message in str(err.value)
 
 
+def test_shape_keys_and_the_group_shapes_flag() -> None:
+    """The keys a group's trials share: those that shape the stacked solve, and width and depth."""
+    assert sw.shape_keys(sw.load_space("default")) == ["ude.width", "ude.depth", "train.segment_length"]
+    space = sw.parse_space({"params": {"simulate.rtol": {"choice": [1e-4, 1e-5]}, "train.lr": {"choice": [0.1]},
+                                       "ude.activation": {"choice": ["tanh"]}}}, name="s", label="s.yaml")
+    assert sw.shape_keys(space) == ["simulate.rtol"]
+    assert sw.Settings.from_cfg(compose([]).sweep).group_shapes is True
+    assert sw.Settings.from_cfg(compose(["sweep.group_shapes=false"]).sweep).group_shapes is False
+    with pytest.raises(ConfigError, match="sweep.group_shapes must be true or false, but got 'no'"):
+        sw.Settings.from_cfg(compose(["sweep.group_shapes=no"]).sweep)
+
+
 def test_bad_space_files_and_first_trials(tmp_path: Path) -> None:
     path = write_space(tmp_path, "params:\n  ude.width: {choice: [4, 8]}\nfirst_trials:\n  - {ude.width: 16}\n")
     with pytest.raises(ConfigError, match=r"first_trials\[0\]: ude.width=16 lies outside params.ude.width"):
@@ -474,7 +486,12 @@ def test_grouped_trials_train_as_one_stack_and_each_keeps_its_own_run(user_proje
     store, _ = open_stores(user_project)
     kids = children(store, study.user_attrs[sw.PARENT_ATTR])
     assert [k.info.run_name for k in kids] == [f"trial-000{i}" for i in range(5)]
-    assert len({t.params["ude.width"] for t in trials}) >= 1
+    # sweep.group_shapes (default): a group's trials share the first one's width (the small space's
+    # only shape key); the sampler proposes the rest freely
+    assert sw.shape_keys(sw.load_space("small")) == ["ude.width"]
+    for group in (trials[:2], trials[2:]):
+        assert len({t.params["ude.width"] for t in group}) == 1
+        assert len({t.params["train.lr"] for t in group}) == len(group)
     for trial, kid in zip(trials, kids):
         assert kid.data.tags["physmend.stacked"] == "true"
         assert kid.data.tags["physmend.trial_state"] == trial.state.name

@@ -19,6 +19,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     cfg.sweep.n_trials = int(cfg.discover.n_trials)
     cfg.sweep.space = str(cfg.discover.space)
     cfg.sweep.group = int(cfg.discover.get("group", 1))
+    cfg.sweep.group_shapes = bool(cfg.discover.get("group_shapes", False))
     ids: list[tuple[str, str]] = []
     banner = "\n" + "=" * 78 + "\n== physmend discover: {} \n" + "=" * 78
     print(banner.format("1/6 diagnose"))

@@ -54,6 +54,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -354,6 +355,7 @@ class Settings:
     group: int = 1
     figures: bool = True
     workers: int = 1
+    group_shapes: bool = True
 
     @classmethod
     def from_cfg(cls, sweep: Any) -> Settings:
@@ -368,6 +370,12 @@ class Settings:
             if not out >= minimum:
                 raise ConfigError(f"sweep.{key} must be >= {minimum}, but got {value!r}")
             return out
+
+        def flag(key: str, default: bool) -> bool:
+            value = sweep.get(key, default)
+            if not isinstance(value, bool):
+                raise ConfigError(f"sweep.{key} must be true or false, but got {value!r}")
+            return value
 
         sampler, pruner = str(sweep.get("sampler", "tpe")), str(sweep.get("pruner", "median"))
         if sampler not in SAMPLERS:
@@ -394,6 +402,7 @@ class Settings:
             group=number("group", int, 1) if sweep.get("group") is not None else 1,
             figures=bool(sweep.get("figures", True)),
             workers=number("workers", int, 1) if sweep.get("workers") is not None else 1,
+            group_shapes=flag("group_shapes", True),
         )
 
     def sampler_for(self, trial_index: int) -> "optuna.samplers.BaseSampler":
@@ -422,6 +431,16 @@ class Settings:
         return optuna.pruners.MedianPruner(
             n_startup_trials=self.pruner_startup_trials, n_warmup_steps=self.pruner_warmup_epochs
         )
+
+
+def shape_keys(space: SearchSpace) -> list[str]:
+    """The searched keys that shape a stacked solve: those the models of a stack must share
+    (:data:`physmend.ude.stacked.SHARED_KEYS`, e.g. ``train.segment_length``) and the network's width
+    and depth (mixed ones are padded to the largest)."""
+    from physmend.ude.stacked import SHARED_KEYS
+
+    shaping = (*SHARED_KEYS, "ude.width", "ude.depth")
+    return [key for key in space.params if any(key == s or key.startswith(s + ".") for s in shaping)]
 
 
 # -- trial configs -------------------------------------------------------------------------------
@@ -764,27 +783,41 @@ class Sweep:
     def trial_group(self, bar: Any, size: int) -> list[Outcome] | None:
         """Ask for up to ``size`` trials and train those that can share a solve as one stack
         (:func:`physmend.ude.stacked.train_stack`, grouped by ``stack_key``); each is still its own
-        trial with its own child run. ``None`` when no trial could be asked (surplus)."""
+        trial with its own child run. ``None`` when no trial could be asked (surplus).
+
+        With ``sweep.group_shapes`` the sampler proposes the first trial's :func:`shape_keys` freely
+        and the others' with those values fixed (Optuna's ``PartialFixedSampler``): the group is one
+        stack of same-shaped networks (no padding) instead of several stacks solved one after another.
+        """
+        import optuna
         from optuna.trial import TrialState
 
         from physmend.ude.stacked import stack_key
 
-        asked = []
+        asked: list[tuple[Any, dict[str, Any]]] = []
+        shared: dict[str, Any] = {}  # group_shapes: the first trial's shape, which the others take
         for _ in range(max(1, size)):
-            self.study.sampler = self.settings.sampler_for(len(self.study.get_trials(deepcopy=False)))
+            sampler = self.settings.sampler_for(len(self.study.get_trials(deepcopy=False)))
+            if shared:
+                with warnings.catch_warnings():  # PartialFixedSampler is "experimental" since optuna 2.4
+                    warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                    sampler = optuna.samplers.PartialFixedSampler(shared, sampler)
+            self.study.sampler = sampler
             trial = self.study.ask()
             trial.set_user_attr(WORKER_ATTR, self.me)
             if self._surplus(trial):
                 trial.set_user_attr(REASON_ATTR, "surplus")
                 self.study.tell(trial, state=TrialState.FAIL)
                 break
-            asked.append(trial)
+            values = self.space.suggest(trial)
+            asked.append((trial, values))
+            if self.settings.group_shapes and not shared:
+                shared = {key: values[key] for key in shape_keys(self.space)}
         if not asked:
             return None
         outcomes: dict[int, Outcome] = {}
         groups: dict[Any, list[tuple[Any, dict[str, Any], DictConfig, Any]]] = {}
-        for trial in asked:
-            values = self.space.suggest(trial)
+        for trial, values in asked:
             try:
                 cfg = self.configs.config(values)
                 problem = self.configs.problem(values, cfg)
@@ -794,19 +827,19 @@ class Sweep:
             groups.setdefault((stack_key(cfg), id(problem)), []).append((trial, values, cfg, problem))
         try:
             with contextlib.ExitStack() as beats:
-                for trial in asked:
+                for trial, _ in asked:
                     beats.enter_context(Heartbeat(trial, self.settings.heartbeat_interval))
                 for members in groups.values():
                     outcomes.update(self._train_group(members))
         except KeyboardInterrupt:
-            for trial in asked:
+            for trial, _ in asked:
                 if trial.number not in outcomes:
                     trial.set_user_attr(REASON_ATTR, "interrupted")
                     self.study.tell(trial, state=TrialState.FAIL)
             raise
-        for trial in asked:
+        for trial, _ in asked:
             self.tell(trial, outcomes[trial.number])
-        return [outcomes[t.number] for t in asked]
+        return [outcomes[t.number] for t, _ in asked]
 
     def _train_group(self, members: list[tuple[Any, dict[str, Any], DictConfig, Any]]) -> dict[int, Outcome]:
         """Train one stack; then log each trial's buffered metrics and result to its own child run."""

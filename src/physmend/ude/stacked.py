@@ -296,6 +296,32 @@ def _setup(problem: Problem, cfg: DictConfig) -> tuple[Reference, Shooting]:
     return ref, plan
 
 
+def _time_grid_parts(problem: Problem, batch: Batch) -> list[tuple[list[int], Batch, torch.Tensor | None]]:
+    """``batch``'s experiments in sets that share their times and input knots: ``(indices into batch,
+    their own batch, their times' rows in batch.t)``; one set ``(all, batch, None)`` when all share.
+
+    An adaptive solve of a batch ends steps on every evaluation time and input knot of every row;
+    experiments recorded on different clocks would each take the steps of all. Solved per set, each
+    takes only its own."""
+    sets: list[tuple[list[int], tuple[tuple[float, ...], tuple[float, ...]]]] = []
+    for b, e in enumerate(problem.experiments):
+        own = make_batch([e], problem.compiled, problem.dtype)
+        grid = (tuple(own.t.tolist()), tuple(own.inputs.knots.tolist()))
+        for members, key in sets:
+            if key == grid:
+                members.append(b)
+                break
+        else:
+            sets.append(([b], grid))
+    if len(sets) == 1:
+        return [(list(range(batch.size)), batch, None)]
+    parts = []
+    for members, _ in sets:
+        part = make_batch([problem.experiments[b] for b in members], problem.compiled, problem.dtype)
+        parts.append((members, part, torch.searchsorted(batch.t, part.t)))
+    return parts
+
+
 # -- one model's bookkeeping ------------------------------------------------------------------------
 @dataclass
 class _Member:
@@ -382,6 +408,7 @@ class _Stack:
         self.checked = checkpoint_problem(problem)  # checkpoints simulate train/validation experiments only
         self.eval_batch = make_batch(self.checked.experiments, problem.compiled, dtype)
         self.full_batch = self.eval_batch if self.checked is problem else make_batch(problem.experiments, problem.compiled, dtype)
+        self.parts = _time_grid_parts(self.checked, self.eval_batch)
         self._rows_changed()
 
     # -- bookkeeping ----------------------------------------------------------------------------------
@@ -580,24 +607,29 @@ class _Stack:
         """Whole-trajectory metrics of the models at ``positions`` in one batched solve (per model on failure).
 
         Checkpoints simulate the train and validation experiments; ``full`` every experiment
-        (test ones included), as a final evaluation does.
+        (test ones included), as a final evaluation does, with outputs at every time of the batch
+        (for figures). Checkpoint experiments recorded at different times are solved apart
+        (:func:`_time_grid_parts`): each set of rows takes only its own steps.
         """
         m = len(positions)
         problem = self.problem if full else self.checked
         batch = self.full_batch if full else self.eval_batch
         b = batch.size
         rows = torch.tensor(positions, dtype=torch.long)
-        rep = torch.arange(b).repeat(m)
-        names = [f"{self.members[i].slot}:{e}" for i in positions for e in batch.ids]
-        batch_m = dataclasses.replace(batch, ids=names, inputs=batch.inputs.select(rep), params=batch.params[rep],
-                                      u0=batch.u0[rep], obs=batch.obs[:, rep], split_time=batch.split_time[rep])
         net = self.net.select(rows)
         est = None if self.est_raw is None else self.est_raw.detach()[rows]
+        parts = [(list(range(b)), batch, None)] if full else self.parts
         try:
             with torch.no_grad():
-                p = self._parameters_for(batch.params, est, m)  # (M·B, n_params)
-                states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
-                y = self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
+                if len(parts) == 1:
+                    y = self._simulate(net, est, positions, batch, sim)
+                else:  # (T, M, B, k) on the union of times; each experiment set only where it has times
+                    y = torch.full((batch.t.shape[0], m, b, len(self.problem.compiled.output_names)), math.nan,
+                                   dtype=self.dtype)
+                    for exps, part, at in parts:
+                        y_part = self._simulate(net, est, positions, part, sim)
+                        y[at[:, None], :, torch.tensor(exps)[None, :]] = y_part.reshape(-1, m, len(exps), y.shape[-1]).movedim(1, 2)
+                    y = y.reshape(y.shape[0], m * b, -1)
         except Exception:  # noqa: BLE001 - one model's failure must not end the others: solve each alone
             return [self._evaluate_alone(i, sim, problem) for i in positions]
         out: list[tuple[dict[str, float], torch.Tensor] | BaseException] = []
@@ -608,6 +640,19 @@ class _Stack:
             except TrainingDiverged as exc:
                 out.append(exc)
         return out
+
+    def _simulate(self, net: _Net, est: torch.Tensor | None, positions: list[int], batch: Batch,
+                  sim: dict[str, Any]) -> torch.Tensor:
+        """Outputs ``(T, M·B, k)`` of the models at ``positions`` (networks ``net``, estimates ``est``)
+        on every experiment of ``batch``, rows model-major, in one adaptive solve."""
+        m, b = len(positions), batch.size
+        rep = torch.arange(b).repeat(m)
+        names = [f"{self.members[i].slot}:{e}" for i in positions for e in batch.ids]
+        batch_m = dataclasses.replace(batch, ids=names, inputs=batch.inputs.select(rep), params=batch.params[rep],
+                                      u0=batch.u0[rep], obs=batch.obs[:, rep], split_time=batch.split_time[rep])
+        p = self._parameters_for(batch.params, est, m)  # (M·B, n_params)
+        states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
+        return self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
 
     def _evaluate_alone(self, position: int, sim: dict[str, Any], problem: Problem
                         ) -> tuple[dict[str, float], torch.Tensor] | BaseException:

@@ -794,7 +794,8 @@ class Sweep:
 
         from physmend.ude.stacked import stack_key
 
-        asked: list[tuple[Any, dict[str, Any]]] = []
+        trials: list[Any] = []
+        first: dict[int, dict[str, Any]] = {}  # the values of a trial suggested before the others are asked
         shared: dict[str, Any] = {}  # group_shapes: the first trial's shape, which the others take
         for _ in range(max(1, size)):
             sampler = self.settings.sampler_for(len(self.study.get_trials(deepcopy=False)))
@@ -809,12 +810,15 @@ class Sweep:
                 trial.set_user_attr(REASON_ATTR, "surplus")
                 self.study.tell(trial, state=TrialState.FAIL)
                 break
-            values = self.space.suggest(trial)
-            asked.append((trial, values))
-            if self.settings.group_shapes and not shared:
-                shared = {key: values[key] for key in shape_keys(self.space)}
-        if not asked:
+            trials.append(trial)
+            if self.settings.group_shapes and not trials[1:]:
+                first[trial.number] = self.space.suggest(trial)
+                shared = {key: first[trial.number][key] for key in shape_keys(self.space)}
+        if not trials:
             return None
+        # the others are suggested once the whole group is asked (the order of earlier versions: a
+        # study repeated with the same seed proposes the same trials)
+        asked = [(trial, first[trial.number] if trial.number in first else self.space.suggest(trial)) for trial in trials]
         outcomes: dict[int, Outcome] = {}
         groups: dict[Any, list[tuple[Any, dict[str, Any], DictConfig, Any]]] = {}
         for trial, values in asked:

@@ -188,6 +188,34 @@ def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: 
     assert len(outcomes) == 2 and all(isinstance(o, TrainingDiverged) and "no-such-method" in str(o) for o in outcomes)
 
 
+def test_checkpoints_of_records_on_different_clocks_are_solved_apart(short_project: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Records sampled at different times are simulated in separate solves (each takes only its own
+    steps); each model still gets the metrics its own evaluation gives."""
+    monkeypatch.chdir(short_project)
+    path = short_project / "recordings" / "run2.csv"
+    pd.read_csv(path).iloc[::2].to_csv(path, index=False)  # run2 every 0.2 s, run1 every 0.1 s
+    cfgs = [_cfg(short_project, *t, warm_start="none") for t in TRIALS[:2]]
+    problem = load_problem(cfgs[0])
+    ref = reference(problem, cfgs[0])
+    plan = plan_shooting(problem, ref.batch, cfgs[0])
+    stack = _Stack([_prepare(c, problem, ref, plan, i) for i, c in enumerate(cfgs)], problem, ref, plan, cfgs[0])
+    checked = checkpoint_problem(problem)
+    assert [e.id for e in checked.experiments] == ["run1", "run2"]
+    assert [exps for exps, _, _ in stack.parts] == [[0], [1]]
+    sim = _sim_opts(cfgs[0])
+    checkpoints = stack.evaluate([0, 1], sim)
+    for i, mem in enumerate(stack.members):
+        stack.write_back(i)
+        alone, _, _ = _evaluate(mem.hybrid, checked, sim)
+        got, y = checkpoints[i]
+        assert set(got) == set(alone)
+        for key, value in alone.items():
+            assert got[key] == pytest.approx(value, rel=1e-4), key
+        # outputs on the union of times: run2 has values at its own times only
+        assert bool(torch.isfinite(y[:, 0]).all()) and int(torch.isfinite(y[:, 1]).all(-1).sum()) == len(checked.experiments[1].obs_time)
+
+
 def test_a_stopped_or_diverging_model_leaves_the_others_alone(short_project: Path,
                                                               monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(short_project)

@@ -1061,9 +1061,9 @@ class Sweep:
 class Reporter:
     """The ``report`` callback of one trial: per-epoch metrics to MLflow, pruning via Optuna."""
 
-    def __init__(self, trial: "optuna.Trial", run_: Any, because: str = "worse than the median of earlier trials at this epoch") -> None:
+    def __init__(self, trial: "optuna.Trial", run_: Any, because: str) -> None:
         """``run_`` None: metrics are kept in ``buffered`` (a stacked trial's run is written afterwards);
-        ``because``: how the pruner compares (ends a pruned trial's message)."""
+        ``because``: how the pruner compares (:attr:`Settings.pruned_because`, ends a pruned trial's message)."""
         self.trial, self.run_, self.because = trial, run_, because
         self.last_epoch = 0
         self.last_value: float | None = None

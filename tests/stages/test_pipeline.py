@@ -102,3 +102,13 @@ def test_bad_run_ids_are_clear_errors(user_project: Path, monkeypatch: pytest.Mo
     assert rc == 2 and "must be a 'propose' run" in err
     rc, _, err = _run(user_project, capsys, "mask")
     assert rc == 2 and "no trial is selected" in err
+
+
+def test_discover_rejects_a_bad_group_shapes_before_writing_anything(user_project: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                    capsys) -> None:  # noqa: ANN001
+    monkeypatch.chdir(user_project)
+    before = sorted(p.name for p in user_project.iterdir())
+    rc, _, err = _run(user_project, capsys, "discover", "discover.group_shapes=no")
+    assert rc == 2
+    assert "discover.group_shapes must be true or false, but got 'no'" in err
+    assert sorted(p.name for p in user_project.iterdir()) == before  # no MLflow store, no runs

@@ -13,13 +13,17 @@ from omegaconf import OmegaConf
 
 def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run the whole pipeline; returns the proposal's run ID."""
+    from physmend.config import ConfigError
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
 
+    shapes = cfg.discover.get("group_shapes", False)
+    if not isinstance(shapes, bool):  # checked before any stage writes a run
+        raise ConfigError(f"discover.group_shapes must be true or false, but got {shapes!r}")
     cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     cfg.sweep.n_trials = int(cfg.discover.n_trials)
     cfg.sweep.space = str(cfg.discover.space)
     cfg.sweep.group = int(cfg.discover.get("group", 1))
-    cfg.sweep.group_shapes = bool(cfg.discover.get("group_shapes", False))
+    cfg.sweep.group_shapes = shapes
     ids: list[tuple[str, str]] = []
     banner = "\n" + "=" * 78 + "\n== physmend discover: {} \n" + "=" * 78
     print(banner.format("1/6 diagnose"))

@@ -2,8 +2,8 @@
 
 Schema (an OmegaConf ``DictConfig`` or a plain mapping)::
 
-    name: cargo_box
-    root: pkg://physmend.library.cargo_box/telemetry   # or a path ('~' expands, relative = cwd)
+    name: my_plant
+    root: ${project:}/telemetry    # or a path ('~' expands, relative = cwd) or pkg://<package>/<subdir>
     time_column: time              # seconds (numeric); default "time"
     columns: {}                    # model name -> column name in the files; default {}
     validation_fraction: 0.2       # used when no experiment has role validation; default 0.2
@@ -179,7 +179,7 @@ def resolve_root(root: Any, *, config_name: str = "data") -> Path:
         if not package:
             raise DataError(
                 f"data config {config_name!r}: `root` {root!r} must name a package, "
-                "as in 'pkg://physmend.library.cargo_box/telemetry'"
+                "as in 'pkg://my_package/telemetry'"
             )
         try:
             base = importlib.resources.files(package)

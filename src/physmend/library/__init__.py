@@ -1,10 +1,7 @@
-"""Ready-made models with their telemetry generators.
+"""Reusable model components beyond the acausal thermal library (:mod:`physmend.modeling.thermal`).
 
-* :mod:`physmend.library.cargo_box` — a refrigerated two-zone cargo box (the seed paper's
-  example): the engineer's model (``build_model``) and synthetic telemetry of three experiments
-  recorded from a box with physics the model leaves out.
-
-Subpackages are imported on demand (``import physmend.library.cargo_box``), not here.
+User projects — a model file, a config directory and a telemetry generator each — live in the
+repository's ``examples/`` folder (shipped inside the package as ``physmend/examples``), not here.
 """
 
 from __future__ import annotations

@@ -1,7 +1,10 @@
-"""The bundled two-zone cargo box: model structure, concealed physics, generator, telemetry, configs."""
+"""The bundled two-zone cargo box (``examples/cargo_box``): model structure, concealed physics,
+generator, telemetry, configs."""
 
 from __future__ import annotations
 
+import importlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,14 +14,34 @@ import sympy as sp
 import torch
 from omegaconf import OmegaConf
 
-from physmend.library.cargo_box import INPUTS, N_STATES, OUTPUTS, build_model
-from physmend.library.cargo_box import generate as gen
-from physmend.library.cargo_box._numeric import NumpyModel
-from physmend.library.cargo_box.check import compare, engineer_rmse, read_telemetry
-from physmend.library.cargo_box.truth import LEAK_COEFFICIENT, build_truth_model, true_leakage
+from physmend.config import compose
 from physmend.modeling import compile_model, load_model
 
 ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "cargo_box"
+
+
+def _example_modules() -> dict[str, object]:
+    """The example's scripts, imported as its own scripts import each other (plain sibling names)."""
+    names = ("model", "_numeric", "truth", "generate", "check")
+    sys.path.insert(0, str(EXAMPLE))
+    try:
+        return {n: importlib.import_module(n) for n in names}
+    finally:
+        sys.path.remove(str(EXAMPLE))
+        for n in names:
+            sys.modules.pop(n, None)
+
+
+_mods = _example_modules()
+model_module = _mods["model"]
+gen = _mods["generate"]
+INPUTS, N_STATES, OUTPUTS, build_model = (getattr(model_module, n) for n in ("INPUTS", "N_STATES", "OUTPUTS", "build_model"))
+NumpyModel = _mods["_numeric"].NumpyModel
+compare, engineer_rmse, read_telemetry = (getattr(_mods["check"], n) for n in ("compare", "engineer_rmse", "read_telemetry"))
+LEAK_COEFFICIENT, build_truth_model, true_leakage = (
+    getattr(_mods["truth"], n) for n in ("LEAK_COEFFICIENT", "build_truth_model", "true_leakage")
+)
 SHIPPED = gen.TELEMETRY_DIR
 NOISE = gen.NOISE_SIGMA
 
@@ -216,15 +239,17 @@ def test_engineer_model_misses_by_clearly_more_than_noise() -> None:
 
 # -- configs --------------------------------------------------------------------------------------
 def test_model_config_loads_the_builder() -> None:
-    cfg = OmegaConf.load(ROOT / "conf" / "model" / "cargo_box.yaml")
+    cfg = compose([]).model  # the default project is the bundled example; ${project:} is its folder
+    assert cfg.builder == f"{EXAMPLE}/model.py:build_model"
     model = load_model(cfg.builder, cfg.options)
     assert model.name == "cargo_box"
 
 
 def test_data_config_matches_the_generator() -> None:
-    cfg = OmegaConf.load(ROOT / "conf" / "data" / "cargo_box.yaml")
+    cfg = OmegaConf.load(EXAMPLE / "conf" / "data" / "cargo_box.yaml")
     assert cfg.name == "cargo_box" and cfg.time_column == "time"
-    assert cfg.root == "pkg://physmend.library.cargo_box/telemetry"
+    assert OmegaConf.to_container(cfg)["root"] == "${project:}/telemetry"
+    assert compose([]).data.root == f"{EXAMPLE}/telemetry"
     assert [e.id for e in cfg.experiments] == [e.id for e in gen.EXPERIMENTS]
     params = {v.name for v in build_model().of_kind("parameter")}
     for entry, exp in zip(cfg.experiments, gen.EXPERIMENTS):
@@ -237,8 +262,6 @@ def test_data_config_matches_the_generator() -> None:
 
 
 def test_truth_is_not_imported_by_the_engineer_side(simplified) -> None:
-    import physmend.library.cargo_box.model as model_module
-
-    src = Path(model_module.__file__).read_text() + Path(gen.__file__).parent.joinpath("__init__.py").read_text()
+    src = Path(model_module.__file__).read_text()
     assert "truth" not in src and "LEAK" not in src
     assert not simplified.rhs["zone1.air.T"].has(sp.Abs)

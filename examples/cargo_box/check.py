@@ -4,7 +4,7 @@ The engineer's model (no bulkhead leakage) is driven by the recorded inputs (lin
 interpolation of each input channel's samples) with each experiment's parameters from their
 start values, and compared with the recorded zone temperatures. Run it as::
 
-    python -m physmend.library.cargo_box.check [--folder DIR]
+    python check.py [--folder DIR]
 
 It prints the RMSE (K) per experiment and zone; the sensor noise is 0.1 K.
 """
@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from physmend.library.cargo_box._numeric import NumpyModel, piecewise_linear_inputs, simulate
-from physmend.library.cargo_box.generate import EXPERIMENTS, TELEMETRY_DIR, Experiment
-from physmend.library.cargo_box.model import INPUTS, OUTPUTS, build_model
+from _numeric import NumpyModel, piecewise_linear_inputs, simulate
+from generate import EXPERIMENTS, TELEMETRY_DIR, Experiment
+from model import INPUTS, OUTPUTS, build_model
 
 
 @dataclass
@@ -87,7 +87,7 @@ def engineer_rmse(folder: Path | str = TELEMETRY_DIR) -> dict[str, dict[str, flo
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m physmend.library.cargo_box.check", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python check.py", description=__doc__.splitlines()[0])
     parser.add_argument("--folder", type=Path, default=TELEMETRY_DIR, help="telemetry folder")
     args = parser.parse_args(argv)
     for exp_id, rmse in engineer_rmse(args.folder).items():

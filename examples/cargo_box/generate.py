@@ -35,8 +35,8 @@ How a record is made (per experiment, fixed seed):
 
 Regenerate the shipped files (byte-identical on every run)::
 
-    python -m physmend.library.cargo_box.generate            # into the package telemetry folder
-    python -m physmend.library.cargo_box.generate --out DIR
+    python generate.py            # into telemetry/ beside it
+    python generate.py --out DIR
 """
 
 from __future__ import annotations
@@ -50,8 +50,9 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from physmend.library.cargo_box._numeric import NumpyModel, piecewise_linear_inputs
-from physmend.library.cargo_box.model import INPUTS, OUTPUTS
+from _numeric import NumpyModel, piecewise_linear_inputs
+from model import INPUTS, OUTPUTS
+from truth import build_truth_model
 
 TELEMETRY_DIR = Path(__file__).resolve().parent / "telemetry"
 COLUMNS = ("time", *OUTPUTS, *INPUTS)
@@ -215,8 +216,6 @@ class Record:
 
 
 def _truth_model() -> NumpyModel:
-    from physmend.library.cargo_box.truth import build_truth_model
-
     return NumpyModel.from_model(build_truth_model())
 
 
@@ -296,7 +295,7 @@ def generate(
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m physmend.library.cargo_box.generate",
+        prog="python generate.py",
         description="Regenerate the synthetic cargo-box telemetry (deterministic).",
     )
     parser.add_argument("--out", type=Path, default=TELEMETRY_DIR, help=f"output folder (default: {TELEMETRY_DIR})")

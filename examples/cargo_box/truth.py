@@ -1,6 +1,6 @@
 """The concealed truth: the cargo box as it really behaves, used ONLY to generate telemetry.
 
-The real box is the engineer's model (:func:`physmend.library.cargo_box.model.build_model`)
+The real box is the engineer's model (``build_model`` in ``model.py``)
 plus one effect that model leaves out: **buoyancy-driven air leakage through gaps in the
 bulkhead**. Cold, dense air from the colder zone flows out low through the gaps while warm air
 flows in high; the exchanged volume flow grows with ``sqrt(|ΔT|)`` (buoyancy head), so the heat
@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import sympy as sp
 
-from physmend.library.cargo_box.model import T_UNIT, build_model
+from model import T_UNIT, build_model
 from physmend.modeling import Model
 from physmend.modeling import thermal as th
 

@@ -23,7 +23,7 @@ import numpy as np
 import sympy
 import yaml
 
-from physmend.symbolic._expr import abs_bars, evaluate, mse_r2
+from physmend.modeling.evaluate import abs_bars, evaluate, mse_r2
 
 DEFAULT_CATALOGUE = Path(__file__).with_name("mechanisms.yaml")
 

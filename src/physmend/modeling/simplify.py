@@ -18,13 +18,17 @@ parameters only.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import networkx as nx
 import sympy as sp
 from sympy.solvers.solveset import NonlinearError
 
 from physmend.modeling.errors import ModelError
-from physmend.modeling.model import Equation, Model, Variable, der_name
+from physmend.modeling.parts import Equation, Variable, der_name
+
+if TYPE_CHECKING:
+    from physmend.modeling.model import Model
 
 
 @dataclass

@@ -209,7 +209,7 @@ def choose_by_recordings(rates: Any, state: str, front: Any) -> tuple[int, str, 
     so a formula buys each extra constant only with a real gain on the recordings. Returns the
     index, the sentence why, and ``(α, R²)`` per candidate.
     """
-    from physmend.symbolic._expr import n_constants
+    from physmend.modeling.evaluate import n_constants
 
     scores = [rates.score(c.expr, state) for c in front.candidates]
     n = max(2.0, float(rates.valid.sum()) / rates.window)

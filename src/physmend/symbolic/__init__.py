@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from physmend.symbolic._api import BACKENDS, available_backends, fit
 from physmend.symbolic._errors import BackendUnavailable, SymbolicError
-from physmend.symbolic._expr import display, evaluate, mse_r2
+from physmend.modeling.evaluate import display, evaluate, mse_r2
 from physmend.symbolic._front import RULES, Candidate, ParetoFront, choose
 
 __all__ = [

@@ -11,7 +11,7 @@ import numpy as np
 import sympy
 
 from physmend.symbolic._errors import BackendUnavailable, SymbolicError
-from physmend.symbolic._expr import display, evaluate, mse_r2
+from physmend.modeling.evaluate import display, evaluate, mse_r2
 from physmend.symbolic._front import Candidate, ParetoFront, pareto_filter
 
 #: back end name -> module implementing it (imported lazily; the modules import nothing heavy at import time).

@@ -10,7 +10,7 @@ from typing import Any
 import sympy
 
 from physmend.symbolic._errors import SymbolicError
-from physmend.symbolic._expr import n_constants
+from physmend.modeling.evaluate import n_constants
 
 FORMAT = "physmend.pareto_front/1"
 RULES = ("score", "knee", "best", "bic")

@@ -26,7 +26,7 @@ import sympy
 
 from physmend.symbolic._api import resolve
 from physmend.symbolic._errors import SymbolicError
-from physmend.symbolic._expr import abs_bars
+from physmend.modeling.evaluate import abs_bars
 
 DEFAULTS: dict[str, Any] = {
     "n_thresholds": 30,

@@ -47,7 +47,7 @@ class RecordedRates:
 
     def score(self, expr: sp.Expr, state: str) -> tuple[float, float, float]:
         """``(α, MSE, R²)`` of ``α·expr`` against the recorded mismatch of ``state``'s equation."""
-        from physmend.symbolic._expr import evaluate, mse_r2
+        from physmend.modeling.evaluate import evaluate, mse_r2
 
         shape = next(iter(self.columns.values())).shape
         flat = {k: v.ravel() for k, v in self.columns.items() if sp.Symbol(k) in expr.free_symbols}

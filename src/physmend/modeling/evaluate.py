@@ -1,4 +1,4 @@
-"""Numeric helpers shared by the back ends and the mechanism catalogue.
+"""Numbers from sympy expressions: evaluation on named data columns, fit scores, display.
 
 Expressions are sympy expressions whose free symbols are named exactly like the data columns
 (dotted names such as ``"zone1.air.T"`` are fine); they are evaluated with numpy on named
@@ -12,7 +12,7 @@ from collections.abc import Mapping
 import numpy as np
 import sympy
 
-from physmend.symbolic._errors import SymbolicError
+from physmend.modeling.errors import ModelError
 
 
 def evaluate(expr: sympy.Expr, columns: Mapping[str, np.ndarray], *, n: int | None = None) -> np.ndarray:
@@ -24,12 +24,12 @@ def evaluate(expr: sympy.Expr, columns: Mapping[str, np.ndarray], *, n: int | No
         n: number of points; defaults to the length of the first non-scalar column.
 
     Raises:
-        SymbolicError: a symbol of ``expr`` has no column.
+        ModelError: a symbol of ``expr`` has no column.
     """
     symbols = sorted(expr.free_symbols, key=lambda s: s.name)
     missing = [s.name for s in symbols if s.name not in columns]
     if missing:
-        raise SymbolicError(
+        raise ModelError(
             f"every variable of the expression must have values, but none were given for {missing} "
             f"(given: {sorted(columns)})"
         )

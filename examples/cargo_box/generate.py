@@ -3,8 +3,8 @@
 THE DATA ARE SYNTHETIC. They are recorded from a simulated "real" box (:mod:`.truth`): the
 engineer's model plus one concealed effect, buoyancy-driven air leakage through gaps in the
 bulkhead, ``Q = c·ΔT·sqrt(|ΔT|)`` from zone 1 air to zone 2 air. The engineer's model does not
-contain it; finding it is the job of physmend. Truth states are not shipped; they are
-reproducible from this module.
+contain it; finding it is the job of physmend. The noise-free truth goes to ``truth/`` for the
+proving suite's scorer.
 
 Three experiments, after the seed paper's table (12 hours each, the box soaked at ambient at
 the start, a pull-down, then regulation):
@@ -52,9 +52,10 @@ from scipy.integrate import solve_ivp
 
 from _numeric import NumpyModel, piecewise_linear_inputs
 from model import INPUTS, OUTPUTS
-from truth import build_truth_model
+from truth import build_truth_model, true_leakage
 
 TELEMETRY_DIR = Path(__file__).resolve().parent / "telemetry"
+TRUTH_DIR = Path(__file__).resolve().parent / "truth"
 COLUMNS = ("time", *OUTPUTS, *INPUTS)
 
 BASE_SEED = 20240611
@@ -279,18 +280,44 @@ def to_csv_text(rec: Record) -> str:
 
 
 def generate(
-    out: Path | str = TELEMETRY_DIR, experiments: Sequence[Experiment] = EXPERIMENTS
+    out: Path | str = TELEMETRY_DIR, experiments: Sequence[Experiment] = EXPERIMENTS, *, truth_out: Path | None = None
 ) -> list[Path]:
-    """Write ``exp{ID}.csv`` for each experiment into ``out`` (created if needed); return the paths."""
+    """Write ``exp{ID}.csv`` for each experiment into ``out`` (created if needed); return the paths.
+
+    ``truth_out``: also write the noise-free truth ``<ID>.csv`` of each experiment there (read only
+    by the proving suite's scorer, ``benchmarks/discovery.py``).
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     truth = _truth_model()
     paths = []
     for exp in experiments:
+        rec = record_experiment(exp, truth)
         path = out / exp.file
-        path.write_text(to_csv_text(record_experiment(exp, truth)), encoding="ascii", newline="\n")
+        path.write_text(to_csv_text(rec), encoding="ascii", newline="\n")
         paths.append(path)
+        if truth_out is not None:
+            Path(truth_out).mkdir(parents=True, exist_ok=True)
+            tpath = Path(truth_out) / f"{exp.id}.csv"
+            tpath.write_text(truth_csv_text(rec, truth.model.state_names), encoding="ascii", newline="\n")
+            paths.append(tpath)
     return paths
+
+
+def truth_csv_text(rec: Record, state_names: Sequence[str]) -> str:
+    """The noise-free truth at the logged rows: ``time``, every state, every input (as the model sees
+    it: the piecewise-linear interpolation of the logged samples) and ``term:<state>``, the concealed
+    heat flow added to each air volume's heat balance (W)."""
+    amb = np.isfinite(rec.ambient)
+    ambient = np.interp(rec.time, rec.time[amb], rec.ambient[amb])
+    leak = true_leakage(rec.true_air[:, 0], rec.true_air[:, 1])
+    columns = {"time": rec.time, **{n: rec.true_states[:, i] for i, n in enumerate(state_names)},
+               "ambient.T": ambient, "zone1.cooling.Q": rec.cooling[:, 0], "zone2.cooling.Q": rec.cooling[:, 1],
+               "term:zone1.air.T": -leak, "term:zone2.air.T": leak}
+    lines = [",".join(columns)]
+    for i in range(len(rec.time)):
+        lines.append(",".join(f"{v[i] + 0.0:.6g}" for v in columns.values()))
+    return "\n".join(lines) + "\n"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -299,8 +326,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         description="Regenerate the synthetic cargo-box telemetry (deterministic).",
     )
     parser.add_argument("--out", type=Path, default=TELEMETRY_DIR, help=f"output folder (default: {TELEMETRY_DIR})")
+    parser.add_argument("--truth", type=Path, default=TRUTH_DIR,
+                        help=f"folder for the noise-free truth of every experiment (default: {TRUTH_DIR})")
     args = parser.parse_args(argv)
-    for path in generate(args.out):
+    for path in generate(args.out, truth_out=args.truth):
         print(f"wrote {path} ({path.stat().st_size} bytes)")
     return 0
 

@@ -12,7 +12,9 @@ Schema (an OmegaConf ``DictConfig`` or a plain mapping)::
         file: exp1.csv             # CSV or Parquet, relative to root (or absolute)
         role: train                # train | validation | test
         parameters: {zone1.length: 9.0}   # overrides of model parameter defaults (optional)
-        initial: {}                # known initial state values (optional)
+        initial: {}                # known initial state values (optional); a two-element list
+                                   # [low, high] declares an unknown initial value, estimated
+                                   # per experiment within these bounds (an unmeasured state)
 
 Everything that can be checked without reading a file (keys, roles, ids, parameter and state
 names, values) is checked here, before any telemetry is read.
@@ -53,7 +55,10 @@ class ExperimentSpec:
         file: absolute path of the telemetry file (not yet checked for existence).
         role: ``"train"``, ``"validation"`` or ``"test"``.
         parameters: parameter name -> overriding value (model units).
-        initial: state name -> known initial value (model units).
+        initial: state name -> initial value (model units): the known value, or the middle of
+            the declared range where it is unknown.
+        initial_ranges: state name -> ``(low, high)`` for initial values declared unknown
+            (estimated per experiment within these bounds).
         index: position in the ``experiments`` list (for messages).
     """
 
@@ -63,6 +68,7 @@ class ExperimentSpec:
     parameters: dict[str, float] = field(default_factory=dict)
     initial: dict[str, float] = field(default_factory=dict)
     index: int = 0
+    initial_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def where(self) -> str:
@@ -363,21 +369,7 @@ def _parse_experiment(
             )
         parameters[key] = _number(value, f"{label}: parameter {key!r}")
 
-    init_raw = entry.get("initial") or {}
-    if not isinstance(init_raw, Mapping):
-        raise DataError(
-            f"{label}: `initial` must map state names to initial values, but got {init_raw!r}"
-        )
-    states = model.state_names
-    initial: dict[str, float] = {}
-    for key, value in init_raw.items():
-        key = str(key)
-        if key not in states:
-            raise DataError(
-                f"{label}: `initial` sets {key!r}, which is not a state of model {model.name!r}"
-                f"{_did_you_mean(key, states)} (states: {states})"
-            )
-        initial[key] = _number(value, f"{label}: initial value of {key!r}")
+    initial, ranges = _parse_initial(entry.get("initial") or {}, model, label)
     return ExperimentSpec(
         id=exp_id,
         file=path,
@@ -385,4 +377,38 @@ def _parse_experiment(
         parameters=parameters,
         initial=initial,
         index=index,
+        initial_ranges=ranges,
     )
+
+
+def _parse_initial(
+    init_raw: Any, model: SimplifiedModel, label: str
+) -> tuple[dict[str, float], dict[str, tuple[float, float]]]:
+    """``initial:`` of one experiment: known values, and ``[low, high]`` ranges of unknown ones."""
+    if not isinstance(init_raw, Mapping):
+        raise DataError(
+            f"{label}: `initial` must map state names to initial values or [low, high] ranges, but got {init_raw!r}"
+        )
+    states = model.state_names
+    initial: dict[str, float] = {}
+    ranges: dict[str, tuple[float, float]] = {}
+    for key, value in init_raw.items():
+        key = str(key)
+        if key not in states:
+            raise DataError(
+                f"{label}: `initial` sets {key!r}, which is not a state of model {model.name!r}"
+                f"{_did_you_mean(key, states)} (states: {states})"
+            )
+        if isinstance(value, Sequence) and not isinstance(value, str):
+            bounds = list(value)
+            what = f"{label}: initial range of {key!r}"
+            if len(bounds) != 2:
+                raise DataError(f"{what} must be [low, high] (two numbers), but got {bounds!r}")
+            low, high = (_number(b, what) for b in bounds)
+            if not low < high:
+                raise DataError(f"{what} must satisfy low < high, but got [{low:g}, {high:g}] (an empty range)")
+            ranges[key] = (low, high)
+            initial[key] = 0.5 * (low + high)
+        else:
+            initial[key] = _number(value, f"{label}: initial value of {key!r}")
+    return initial, ranges

@@ -46,7 +46,9 @@ class Experiment:
             ``t0``), in ``model.input_names`` order; each covers ``[0, t_end]``.
         parameters: ``(n_params,)`` float64, model defaults overridden by the config, in
             ``model.parameter_names`` order.
-        initial: state name -> known initial value (at ``t0``).
+        initial: state name -> initial value (at ``t0``): known, or the middle of its range.
+        initial_ranges: state name -> ``(low, high)`` of initial values declared unknown
+            (estimated per experiment within these bounds).
         split_time: relative time (s) from which observations count as validation, when a
             validation slice is carved from this training record; None otherwise.
     """
@@ -61,6 +63,7 @@ class Experiment:
     parameters: np.ndarray
     initial: dict[str, float] = field(default_factory=dict)
     split_time: float | None = None
+    initial_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @property
     def t_end(self) -> float:
@@ -202,6 +205,7 @@ def _load_one(spec: ExperimentSpec, cfg: DataConfig, model: SimplifiedModel) -> 
         parameters=params,
         initial=dict(spec.initial),
         split_time=None,
+        initial_ranges=dict(spec.initial_ranges),
     )
 
 

@@ -100,7 +100,9 @@ def corrected_problem(problem_cfg: Any, corrections: list) -> Any:
 
 
 def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]:
-    """Whole-trajectory simulation of the corrected model on every experiment (adaptive solver).
+    """Whole-trajectory simulation of the corrected model (adaptive solver) on the experiments of
+    ``problem`` — every choice passes the training and validation experiments only
+    (:func:`physmend.ude.train.checkpoint_problem`); test experiments are simulated for the report.
 
     Returns ``(reference, None)``, or ``(None, why)`` when it cannot be simulated: the solver
     fails on some experiment, or an output of a training or validation experiment is not finite.
@@ -119,6 +121,21 @@ def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]
     return ref, None
 
 
+def held_out_metrics(problem: Any, problem_cfg: Any) -> dict[str, float]:
+    """``test.rmse`` and the per-experiment RMSE of the test experiments of ``problem`` (report only)."""
+    import dataclasses
+
+    test = [e for e in problem.experiments if e.role == "test"]
+    if not test:
+        return {}
+    only = dataclasses.replace(problem, experiments=test)
+    ref, _ = simulate_corrected(only, problem_cfg)
+    if ref is None:
+        return {"test.rmse": float("nan")}
+    out = corrected_metrics(only, ref, require_validation=False)
+    return {k: v for k, v in out.items() if k == "test.rmse" or k.startswith("rmse.")}
+
+
 def with_parameters(problem: Any, values: dict[str, float]) -> Any:
     """``problem`` with the parameters ``values`` (name -> value) changed in every experiment."""
     import dataclasses
@@ -133,14 +150,19 @@ def with_parameters(problem: Any, values: dict[str, float]) -> Any:
     return dataclasses.replace(problem, experiments=experiments)
 
 
-def corrected_metrics(problem: Any, ref: Any) -> dict[str, float]:
+def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True) -> dict[str, float]:
     """Whole-trajectory metrics (``val.rmse`` …, see :func:`physmend.ude.train.metrics_of`) of the
     corrected model from its simulation ``ref`` (:func:`simulate_corrected`)."""
-    from physmend.ude.train import metrics_of
+    from physmend.ude.train import TrainingDiverged, metrics_of
 
     with torch.no_grad():
         y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])
-    return metrics_of(problem, ref.batch, y)
+    try:
+        return metrics_of(problem, ref.batch, y)
+    except TrainingDiverged:
+        if require_validation:
+            raise
+        return {}
 
 
 def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int) -> tuple[list, Any]:
@@ -247,14 +269,15 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.symbolic import choose, fit
     from physmend.tracking import TrackingError, get_run, open_store, stage_run
     from physmend.ude.analysis import training_trajectories
-    from physmend.ude.train import varying_parameters
+    from physmend.ude.timescale import resolve_times
+    from physmend.ude.train import checkpoint_problem, varying_parameters
 
     store = open_store(cfg.tracking)
     sens_run = resolve(store, source_run_id, stages=("sensitivity",), latest=source_run_id is None)
     model_run = get_run(store, sens_run.data.tags["physmend.source_run_id"])
     src = load_source(store, model_run)
-    work = merged(src.cfg, cfg, "symbolic")
     hybrid, problem = src.hybrid, src.problem
+    work = resolve_times(merged(src.cfg, cfg, "symbolic"), problem)
     sc = cfg.symbolic
     kept = sens_run.data.tags.get("physmend.kept", "").split(",")
     inputs = [n for n in sens_run.data.tags.get("physmend.inputs", "").split(",") if n]
@@ -283,9 +306,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     if select not in ("recorded", "rule"):
         raise TrackingError(f"symbolic.select must be 'recorded' or 'rule', but got {select!r}")
     rates = None
-    window = sc.get("window", 1800.0)
-    if isinstance(window, bool) or not isinstance(window, (int, float)) or not window > 0:
-        raise TrackingError(f"symbolic.window must be a number of seconds > 0, but got {window!r}")
+    window = float(work.symbolic.window)  # 'auto' resolved from the sampling interval (physmend.ude.timescale)
     if select == "recorded":
         from physmend.ude.rates import recorded_rates
 
@@ -308,7 +329,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     fallback = ""
     while True:
         corrections = [_correction(problem, state, fronts[state], *picks[state], columns, units, sc, chosen) for state in kept]
-        corrected = corrected_problem(work, corrections)
+        full = corrected_problem(work, corrections)
+        corrected = checkpoint_problem(full)  # every choice below sees training and validation data only
         ref, trouble = simulate_corrected(corrected, work)
         if trouble is None:
             break
@@ -332,7 +354,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                f"{result.loss_before:.4g} → {result.loss_after:.4g}"
                + ("" if result.converged else f", stopped at symbolic.refit_epochs={iterations} before converging"))
         if after["val.rmse"] < before["val.rmse"]:
-            corrections, metrics = fitted, after
+            corrections, metrics, full = fitted, after, with_parameters(full, values)
             refit_note = (f"constants re-fitted through the simulator ({how}; validation RMSE "
                           f"{before['val.rmse']:.4g} → {after['val.rmse']:.4g})")
         elif ref_after is None:
@@ -343,6 +365,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                           f"({before['val.rmse']:.4g} → {after['val.rmse']:.4g}); the regression's constants are kept")
     else:
         refit_note = "constants as found by the regression (symbolic.refit_epochs=0)"
+    metrics = {**metrics, **held_out_metrics(full, work)}  # reported, chosen by nothing
     with stage_run(store, work, stage=STAGE, source_run_id=sens_run.info.run_id, run_name="symbolic",
                    tags={"physmend.kept": ",".join(kept), "physmend.model_run_id": model_run.info.run_id}) as run_:
         run_.log_params({"backend": sc.backend, "rule": sc.rule, "inputs": ",".join(x_names)})

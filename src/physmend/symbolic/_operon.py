@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib.util
 import inspect
-import os
 import warnings
 from typing import Any
 
@@ -35,7 +34,7 @@ DEFAULTS: dict[str, Any] = {
     "tournament_size": 3,
     "max_evaluations": 1_000_000,
     "max_time": 60,
-    "n_threads": min(2, os.cpu_count() or 1),
+    "n_threads": 1,  # one thread: the same seed gives the same front (parallel evolution is not reproducible)
     "max_points": 2000,
 }
 

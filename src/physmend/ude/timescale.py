@@ -1,0 +1,223 @@
+"""Time settings derived from the data and the model: no default is an absolute time.
+
+A record may last 3 s at 1 kHz, 30 units of dimensionless time in 40 samples, or 30 days at
+5 min; so every time setting whose value is ``auto`` is derived here from
+
+* the **sampling interval** Δ: the median interval between rows with a measured output, over the
+  training records (in the data's own time unit);
+* the **record length**: the shortest training record (its training part, before a carved
+  validation slice);
+* the **fastest time constant** of the model as written: ``1 / max |λ|`` over the eigenvalues
+  ``λ`` of its Jacobian ``∂f/∂u``, at the start of each training record and, where a reference
+  simulation is at hand, along it (central differences: works for any right-hand side).
+
+The rules (``cfg.train`` / ``cfg.symbolic`` keys; a number given instead of ``auto`` wins):
+
+===========================  ======================================================================
+``train.step``               ``min(Δ / 2, 2 / max|λ|)``: half a sampling interval, smaller where the
+                             fixed-step RK4 of training would be unstable (its stability limit on
+                             the real axis is ``|λ h| ≈ 2.8``), then shortened so that a segment
+                             holds a whole number of steps
+``train.segment_length``     ``train.segment_samples`` · Δ (default 60 samples), at most a quarter
+                             of the record, at least 2 steps
+``train.warm_window``        ``train.warm_window_samples`` · Δ (default 10), at most a tenth of the
+                             record, at least 2 Δ
+``symbolic.window``          ``symbolic.window_samples`` · Δ (default 30), at most a tenth of the
+                             record, at least 3 Δ
+===========================  ======================================================================
+
+An explicit time that cannot work (a step or a segment longer than the record) is one clear error.
+Imports: ``physmend.config``, ``physmend.simulate`` and torch.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from physmend.config import ConfigError
+
+if TYPE_CHECKING:
+    from physmend.problem import Problem
+
+AUTO = "auto"
+STABLE_RK4 = 2.0  # |λ h| kept below this (RK4's real-axis limit is about 2.785)
+
+
+class TimeSettingError(ConfigError):
+    """A time setting cannot work for these records; the message names the key and the value."""
+
+
+@dataclass(frozen=True)
+class TimeScales:
+    """What the data and the model say about time (all in the data's time unit).
+
+    Attributes:
+        sample: median sampling interval Δ of the measured outputs over the training records.
+        record: length of the shortest training record (its training part).
+        fastest: fastest time constant of the model as written, ``1 / max |λ|`` (inf: none).
+    """
+
+    sample: float
+    record: float
+    fastest: float
+    notes: list[str] = field(default_factory=list)
+
+
+def _train_records(problem: Problem) -> list[tuple[np.ndarray, float]]:
+    out = []
+    for e in problem.experiments:
+        if e.role != "train":
+            continue
+        t = np.asarray(e.obs_time, dtype=float)
+        end = float(e.split_time) if e.split_time is not None else float(t[-1])
+        out.append((t[t <= end + 1e-12], end))
+    return out
+
+
+def fastest_time_constant(problem: Problem, states: torch.Tensor | None = None, inputs: torch.Tensor | None = None,
+                          params: torch.Tensor | None = None) -> float:
+    """``1 / max |λ|`` of the model's Jacobian at the given points (inf when every λ is 0).
+
+    ``states (P, n)``, ``inputs (P, m)``, ``params (P, k)``; without them, the start states of the
+    training experiments with their inputs at their first time.
+    """
+    from physmend.simulate import make_batch
+
+    model = problem.compiled
+    if states is None:
+        train = [e for e in problem.experiments if e.role == "train"] or list(problem.experiments)
+        batch = make_batch(train, model, problem.dtype)
+        states = batch.u0
+        inputs = batch.inputs.at(batch.t[:1]).reshape(len(train), -1)
+        params = batch.params
+    assert inputs is not None and params is not None
+    n = states.shape[-1]
+    with torch.no_grad():
+        h = 1e-6 * states.abs().clamp_min(1.0)  # (P, n)
+        eye = torch.eye(n, dtype=states.dtype)
+        up = states[None] + eye[:, None, :] * h[None]  # (n, P, n): state i perturbed in block i
+        down = states[None] - eye[:, None, :] * h[None]
+        x = inputs[None].expand(n, *inputs.shape)
+        p = params[None].expand(n, *params.shape)
+        diff = model.rhs(up, x, p) - model.rhs(down, x, p)  # (n, P, n)
+        jac = (diff / (2 * h.T[:, :, None])).permute(1, 2, 0)  # (P, n_out, n_in)
+        jac = torch.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0)
+        rho = float(torch.linalg.eigvals(jac).abs().max()) if jac.numel() else 0.0
+    return 1.0 / rho if rho > 0 and math.isfinite(rho) else math.inf
+
+
+def time_scales(problem: Problem, reference: Any | None = None) -> TimeScales:
+    """Sampling interval, record length and fastest time constant of ``problem``.
+
+    ``reference``: the model as written simulated on every experiment
+    (:func:`physmend.ude.reference.reference`); where given, the Jacobian is also taken along it.
+    """
+    records = _train_records(problem)
+    if not records:
+        raise TimeSettingError("deriving time settings needs at least one experiment with role 'train', but there is none")
+    gaps = np.concatenate([np.diff(t) for t, _ in records if t.size > 1] or [np.array([])])
+    gaps = gaps[gaps > 0]
+    record = min(end for _, end in records)
+    if gaps.size == 0 or not record > 0:
+        raise TimeSettingError(
+            f"deriving time settings needs training records with at least two measured rows, but the shortest "
+            f"lasts {record:g} time units"
+        )
+    sample = float(np.median(gaps))
+    fastest = fastest_time_constant(problem)
+    if reference is not None:
+        b_train = [b for b, e in enumerate(problem.experiments) if e.role == "train"]
+        T = reference.states.shape[0]
+        rows = torch.unique(torch.linspace(0, T - 1, min(T, 16)).round().long())
+        st = reference.states[rows][:, b_train].reshape(-1, reference.states.shape[-1])
+        xs = reference.inputs[rows][:, b_train].reshape(-1, reference.inputs.shape[-1])
+        ps = reference.batch.params[b_train][None].expand(len(rows), -1, -1).reshape(-1, reference.batch.params.shape[-1])
+        ok = torch.isfinite(st).all(-1)
+        if bool(ok.any()):
+            fastest = min(fastest, fastest_time_constant(problem, st[ok], xs[ok], ps[ok]))
+    return TimeScales(sample=sample, record=record, fastest=fastest)
+
+
+def _given(node: Any, group: str, key: str) -> float | None:
+    value = node.get(key, AUTO)
+    if value is None or (isinstance(value, str) and value.strip().lower() == AUTO):
+        return None
+    rule = (f"{group}.{key} must be a number of seconds > 0, but got {value!r} "
+            f"(or 'auto': derived from the sampling interval)")
+    if isinstance(value, bool):
+        raise TimeSettingError(rule)
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise TimeSettingError(rule) from None
+    if not (out > 0 and math.isfinite(out)):
+        raise TimeSettingError(rule)
+    return out
+
+
+def _count(node: Any, group: str, key: str, default: float) -> float:
+    value = node.get(key, default)
+    rule = f"{group}.{key} must be a number of sampling intervals > 0, but got {value!r}"
+    if isinstance(value, bool):
+        raise TimeSettingError(rule)
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise TimeSettingError(rule) from None
+    if not (out > 0 and math.isfinite(out)):
+        raise TimeSettingError(rule)
+    return out
+
+
+def resolve_times(cfg: Any, problem: Problem, reference: Any | None = None) -> DictConfig:
+    """A copy of ``cfg`` whose ``auto`` time settings are numbers (see the module docstring)."""
+    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    tc = out.train
+    sc = out.get("symbolic") or OmegaConf.create({})
+    scales = time_scales(problem, reference)
+    d, record = scales.sample, scales.record
+
+    segment = _given(tc, "train", "segment_length")
+    if segment is None:
+        segment = min(_count(tc, "train", "segment_samples", 60) * d, record / 4)
+    elif segment > record * (1 + 1e-9):
+        raise TimeSettingError(
+            f"train.segment_length = {segment:g} is longer than the shortest training record ({record:g} time "
+            f"units): give a shorter one, or train.segment_length=auto (train.segment_samples sampling intervals)"
+        )
+    step = _given(tc, "train", "step")
+    if step is None:
+        limit = STABLE_RK4 * scales.fastest
+        step = min(d / 2, limit)
+        step = segment / max(2, math.ceil(segment / step - 1e-9))
+    elif step >= record:
+        raise TimeSettingError(
+            f"train.step = {step:g} is not shorter than the shortest training record ({record:g} time units, "
+            f"sampled every {d:g}): give a step below the sampling interval, or train.step=auto"
+        )
+    if segment < step:
+        segment = step * 2
+    warm = _given(tc, "train", "warm_window")
+    if warm is None:
+        warm = max(2 * d, min(_count(tc, "train", "warm_window_samples", 10) * d, record / 10))
+    window = _given(sc, "symbolic", "window") if "symbolic" in out else None
+    if window is None:
+        window = max(3 * d, min(_count(sc, "symbolic", "window_samples", 30) * d, record / 10))
+    tc.step, tc.segment_length, tc.warm_window = float(step), float(segment), float(warm)
+    if "symbolic" in out:
+        out.symbolic.window = float(window)
+    return out
+
+
+def describe(cfg: Any) -> str:
+    """One line with the resolved time settings of ``cfg`` (after :func:`resolve_times`)."""
+    tc = cfg.train
+    extra = f", symbolic window {float(cfg.symbolic.window):g}" if "symbolic" in cfg else ""
+    return (f"time settings: step {float(tc.step):g}, segments {float(tc.segment_length):g}, "
+            f"warm-start window {float(tc.warm_window):g}{extra} (data time units)")

@@ -38,7 +38,7 @@ def analyse(problem: Problem, traj: Trajectories, t: np.ndarray, cfg: Any) -> di
             stats = res.error_stats(exp.obs_time, y, s)
             r = s - y
             windows = res.worst_windows(
-                exp.obs_time, r, length=max(span * float(cfg.diagnose.window_fraction), 1.0),
+                exp.obs_time, r, length=max(span * float(cfg.diagnose.window_fraction), 2 * _interval(exp.obs_time)),
                 count=int(cfg.diagnose.n_windows),
             )
             per.append(
@@ -96,8 +96,16 @@ def _redundant_observed(model: Any) -> set[str]:
     return out
 
 
+def _interval(t: np.ndarray) -> float:
+    """Median sampling interval of the times ``t (n,)`` (0 for fewer than two)."""
+    gaps = np.diff(np.asarray(t, dtype=float))
+    return float(np.median(gaps)) if gaps.size else 0.0
+
+
 def _clock(seconds: float, span: float) -> str:
     """A time in the unit that suits a record of length ``span`` seconds."""
+    if span >= 3 * 86400:
+        return f"{seconds / 86400:.2f} d"
     if span >= 3 * 3600:
         return f"{seconds / 3600:.1f} h"
     if span >= 180:

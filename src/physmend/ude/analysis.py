@@ -24,7 +24,10 @@ class HybridTrajectories:
 
     ``u (N, n_states)``, ``x (N, n_inputs)``, ``p (N, n_params)``, ``du (N, n_states)`` the
     hybrid's derivatives, ``corr (N, n_corrected)`` the network's corrections, ``z (N, n_features)``
-    the normalised network inputs, ``exp (N,)`` batch index, ``t (N,)`` time (s).
+    the normalised network inputs, ``exp (N,)`` batch index, ``t (N,)`` time (s);
+    ``added (N, n_corrected)``: everything the hybrid adds to the model *as written* in each
+    corrected equation — the correction plus what jointly estimated parameters changed there,
+    ``f(u, x, p_estimated) − f(u, x, p_declared)`` (state unit / s).
     """
 
     u: torch.Tensor
@@ -36,6 +39,7 @@ class HybridTrajectories:
     exp: torch.Tensor
     t: torch.Tensor
     batch: Batch
+    added: torch.Tensor | None = None
 
 
 def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> HybridTrajectories:
@@ -50,9 +54,13 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
         du = rhs(states, x)
         corr = hybrid.corrections(states, x, p)
         z = (hybrid.features(states, x, p) - hybrid.mean) / hybrid.std
+        idx = hybrid.corrected_idx
+        moved = (problem.compiled.bind(p)(states, x) - problem.compiled.bind(batch.params)(states, x))[..., idx]
+        added = corr + moved
     tt = batch.t[:, None].expand_as(mask)
     ee = torch.arange(batch.size)[None, :].expand_as(mask)
-    return HybridTrajectories(states[mask], x[mask], pp[mask], du[mask], corr[mask], z[mask], ee[mask], tt[mask], batch)
+    return HybridTrajectories(states[mask], x[mask], pp[mask], du[mask], corr[mask], z[mask], ee[mask], tt[mask], batch,
+                              added[mask])
 
 
 def rank_corrections(hybrid: HybridModel, traj: HybridTrajectories) -> list[tuple[str, float]]:
@@ -99,20 +107,27 @@ def rank_inputs(hybrid: HybridModel, jac: torch.Tensor, keep: list[str] | None =
 
 
 def equation_corrections(hybrid: HybridModel, problem: Problem, traj: HybridTrajectories, kept: list[str]) -> torch.Tensor:
-    """``a_i · correction_i`` of each kept equation ``a_i·der(x_i) = …`` along the samples: ``(N, k)``.
+    """``a_i · added_i`` of each kept equation ``a_i·der(x_i) = …`` along the samples: ``(N, k)``.
 
-    In the equation's own units (W for a heat balance), so a term that is the same physical flow
-    in experiments of different size (capacity) is the same function of its inputs.
+    ``added`` is what the hybrid adds to the model as written: the network's correction plus what
+    jointly estimated parameters changed in that equation (:class:`HybridTrajectories`). A parameter
+    that drifted to absorb part of the missing physics thus hands it back: the formula is fitted to
+    the whole mismatch of the declared model, which is the model it will be attached to. In the
+    equation's own units (W for a heat balance), so a term that is the same physical flow in
+    experiments of different size (capacity) is the same function of its inputs; the coefficient
+    ``a_i`` is taken with the declared parameters.
     """
     from physmend.modeling.compile import lambdify_torch
 
     model = problem.model
     psyms = [v.symbol for v in model.parameters]
     cols = []
+    declared = traj.batch.params[traj.exp]  # (N, n_params): the experiment's parameters as declared
+    values = traj.corr if traj.added is None else traj.added
     for name in kept:
-        coef = lambdify_torch(psyms, [model.der_coefficient[name]], "der coefficient")(*traj.p.unbind(-1))[0]
+        coef = lambdify_torch(psyms, [model.der_coefficient[name]], "der coefficient")(*declared.unbind(-1))[0]
         coef = torch.as_tensor(coef, dtype=traj.p.dtype).expand(traj.p.shape[0])
-        cols.append(coef * traj.corr[:, hybrid.spec.corrected.index(name)])
+        cols.append(coef * values[:, hybrid.spec.corrected.index(name)])
     return torch.stack(cols, 1)
 
 

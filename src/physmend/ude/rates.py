@@ -77,7 +77,8 @@ def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list
     if not wanted:
         return None
     window = max(1, int(round(float(window_s) / dt)))
-    p = hybrid.parameters_for(batch.params[forced.exp_index]).detach()  # (E, n_params)
+    # the declared parameters: the mismatch of the model as written, whatever estimates absorbed (E, n_params)
+    p = batch.params[forced.exp_index]
     with torch.no_grad():
         physics = problem.compiled.bind(p)(forced.states, forced.inputs)  # (G, E, n)
     psyms = [v.symbol for v in problem.model.parameters]

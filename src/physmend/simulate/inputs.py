@@ -69,6 +69,21 @@ class PiecewiseLinear:
             base = base + self.slopes[:, idx] * (tc - self.knots[idx])[None, :, None]
         return base.transpose(0, 1)
 
+    def at_each(self, t: torch.Tensor) -> torch.Tensor:
+        """Values of each batch element at its own times ``t (T, B)``: ``(T, B, n)`` (memory T·B·n,
+        where :meth:`at` on the flattened times would take T·B²·n)."""
+        B = self.values.shape[0]
+        if t.ndim != 2 or t.shape[1] != B:
+            raise ValueError(f"at_each needs times (T, {B}), one column per batch element, but got {tuple(t.shape)}")
+        if self.values.shape[-1] == 0:
+            return self.values[:, :1, :].expand(-1, t.shape[0], -1).transpose(0, 1)
+        idx, tc = self._index(t)  # (T, B)
+        rows = torch.arange(B)[None, :].expand_as(idx)
+        base = self.values[rows, idx]  # (T, B, n)
+        if self.knots.shape[0] > 1:
+            base = base + self.slopes[rows, idx] * (tc - self.knots[idx])[..., None]
+        return base
+
     def select(self, index: Sequence[int] | torch.Tensor) -> "PiecewiseLinear":
         """The same inputs for a subset (or repetition) of batch elements."""
         idx = torch.as_tensor(index, dtype=torch.long)

@@ -67,8 +67,10 @@ def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list
     windows of ``window_s`` seconds; None when no state of ``states`` is measured."""
     from physmend.modeling.compile import lambdify_torch
 
+    from physmend.ude.timescale import resolved
+
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
-    dt = float(cfg.train.step)
+    dt = float(resolved(cfg, problem).train.step)
     forced = forced_trajectories(problem, batch, hybrid, dt)
     if forced is None:
         return None

@@ -98,6 +98,7 @@ SHARED_KEYS: tuple[str, ...] = (
     "simulate",
     "train.step",
     "train.segment_length",
+    "train.segment_samples",
     "train.epochs",
     "train.schedule",
     "train.eval_every",
@@ -276,9 +277,9 @@ _SETUPS: dict[int, tuple[Problem, dict[Any, Reference], dict[Any, Shooting]]] = 
 _SETUPS_MAX = 4
 
 
-def _setup(problem: Problem, cfg: DictConfig) -> tuple[Reference, Shooting]:
+def _setup(problem: Problem, cfg: DictConfig, *, plan: bool = True) -> tuple[Reference, Shooting | None]:
     """``(reference(problem, cfg), plan_shooting(problem, ref.batch, cfg))``, computed once per
-    problem, solver settings and shooting settings in this process."""
+    problem, solver settings and shooting settings in this process (``plan=False``: no plan)."""
     entry = _SETUPS.get(id(problem))
     if entry is None or entry[0] is not problem:
         if len(_SETUPS) >= _SETUPS_MAX:
@@ -289,11 +290,13 @@ def _setup(problem: Problem, cfg: DictConfig) -> tuple[Reference, Shooting]:
     ref = refs.get(ref_key)
     if ref is None:
         ref = refs[ref_key] = reference(problem, cfg)
+    if not plan:
+        return ref, None
     plan_key = (ref_key, float(cfg.train.step), float(cfg.train.segment_length))
-    plan = plans.get(plan_key)
-    if plan is None:
-        plan = plans[plan_key] = plan_shooting(problem, ref.batch, cfg)
-    return ref, plan
+    shooting = plans.get(plan_key)
+    if shooting is None:
+        shooting = plans[plan_key] = plan_shooting(problem, ref.batch, cfg)
+    return ref, shooting
 
 
 def _time_grid_parts(problem: Problem, batch: Batch) -> list[tuple[list[int], Batch, torch.Tensor | None]]:
@@ -780,9 +783,14 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
         raise UDEConfigError(f"final_eval must be 'own' or 'batched', but got {final_eval!r}")
     if not cfgs:
         return []
+    from physmend.ude.timescale import check_budget, resolve_times
+
     _check_shared(cfgs)
+    ref, _ = _setup(problem, cfgs[0], plan=False)
+    cfgs = [resolve_times(cfg, problem, ref) for cfg in cfgs]  # 'auto' time settings, as train() resolves them
     cfg0 = cfgs[0]
     ref, plan = _setup(problem, cfg0)
+    check_budget(plan, problem, cfgs)
     results: list[TrainResult | BaseException | None] = [None] * len(cfgs)
     members: list[_Member] = []
     warm_settings = {_warm_settings(cfg) for cfg in cfgs}

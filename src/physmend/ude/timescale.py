@@ -221,3 +221,57 @@ def describe(cfg: Any) -> str:
     extra = f", symbolic window {float(cfg.symbolic.window):g}" if "symbolic" in cfg else ""
     return (f"time settings: step {float(tc.step):g}, segments {float(tc.segment_length):g}, "
             f"warm-start window {float(tc.warm_window):g}{extra} (data time units)")
+
+
+GIB = 1024.0**3
+DEFAULT_MEMORY_LIMIT_GIB = 2.0
+
+
+def plan_bytes(plan: Any, problem: Problem, cfgs: list[Any]) -> float:
+    """Estimated memory (bytes) of one training epoch of ``cfgs`` (one model each) on ``plan``.
+
+    Backpropagation through fixed-step RK4 keeps, for every grid step of every segment and model,
+    the four stages' states, inputs and network activations: about
+    ``8 · models · S · K · 4 · (12·n + 2·m + 3·Σ widths)`` bytes for ``S`` segments of ``K`` steps,
+    ``n`` states, ``m`` inputs; plus the inputs at every half step.
+    """
+    n, m = len(problem.compiled.state_names), len(problem.compiled.input_names)
+    steps = int(plan.steps) * int(plan.starts.shape[0])
+    per_model = 0.0
+    for cfg in cfgs:
+        width, depth = int(cfg.ude.width), int(cfg.ude.depth)
+        per_model += 8.0 * steps * 4 * (12 * n + 2 * m + 3 * width * max(depth, 1))
+    return per_model + 8.0 * (2 * steps + plan.starts.shape[0]) * m
+
+
+def check_budget(plan: Any, problem: Problem, cfgs: list[Any]) -> None:
+    """Refuse, in one line, a training plan whose estimated memory exceeds ``train.memory_limit_gib``."""
+    limit = cfgs[0].train.get("memory_limit_gib", DEFAULT_MEMORY_LIMIT_GIB)
+    try:
+        limit = float(limit)
+    except (TypeError, ValueError):
+        raise TimeSettingError(f"train.memory_limit_gib must be a number of GiB > 0, but got {limit!r}") from None
+    if not limit > 0:
+        raise TimeSettingError(f"train.memory_limit_gib must be a number of GiB > 0, but got {limit!r}")
+    need = plan_bytes(plan, problem, cfgs)
+    if need > limit * GIB:
+        total = int(plan.steps) * int(plan.starts.shape[0])
+        raise TimeSettingError(
+            f"the training plan needs about {need / GIB:.1f} GiB ({total} RK4 steps of {plan.dt:g} over the training "
+            f"records x {len(cfgs)} model(s)), more than train.memory_limit_gib={limit:g}: give a larger train.step "
+            f"(now {plan.dt:g}), train fewer models at once (sweep.group), or use shorter or fewer training records"
+        )
+
+
+def _is_auto(value: Any) -> bool:
+    return value is None or (isinstance(value, str) and value.strip().lower() == AUTO)
+
+
+def resolved(cfg: Any, problem: Problem) -> Any:
+    """``cfg`` itself when its time settings are numbers already, else :func:`resolve_times` of it
+    (for entry points that may be called with a freshly composed configuration)."""
+    tc = cfg.train
+    keys = [tc.get("step", AUTO), tc.get("segment_length", AUTO), tc.get("warm_window", AUTO)]
+    if "symbolic" in cfg:
+        keys.append(cfg.symbolic.get("window", AUTO))
+    return resolve_times(cfg, problem) if any(_is_auto(k) for k in keys) else cfg

@@ -207,6 +207,9 @@ class Shooting:
 
 
 def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
+    from physmend.ude.timescale import resolved
+
+    cfg = resolved(cfg, problem)
     dt = float(cfg.train.step)
     seg = float(cfg.train.segment_length)
     if not (dt > 0 and seg >= dt):
@@ -241,9 +244,7 @@ def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
     exp_t = torch.tensor(exp_idx)
     start_t = torch.tensor(starts, dtype=dtype)
     grid = start_t[None, :] + torch.arange(2 * steps + 1, dtype=dtype)[:, None] * (dt / 2)  # (2K+1, S)
-    xs = batch.inputs.select(exp_t)
-    x_half = xs.at(grid.reshape(-1)).reshape(2 * steps + 1, S, S, -1)
-    x_half = x_half[:, torch.arange(S), torch.arange(S)]  # each segment's own inputs
+    x_half = batch.inputs.select(exp_t).at_each(grid)  # (2K+1, S, m): each segment's own inputs
     next_of = torch.full((S,), -1, dtype=torch.long)
     for s in range(S - 1):
         if exp_idx[s + 1] == exp_idx[s] and not first[s + 1]:
@@ -457,12 +458,16 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         TrainingDiverged: the loss or a trajectory became non-finite.
         UDEConfigError: a ``ude.*`` / ``train.*`` setting does not fit the model.
     """
-    tc = cfg.train
+    from physmend.ude.timescale import check_budget, resolve_times
+
     torch.manual_seed(int(cfg.get("seed", 0)))
     ref = reference(problem, cfg)
+    cfg = resolve_times(cfg, problem, ref)  # 'auto' time settings from the data and the model
+    tc = cfg.train
     spec = build_spec(cfg, problem, ref)
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
     plan = plan_shooting(problem, ref.batch, cfg)
+    check_budget(plan, problem, [cfg])
     seg0 = _initial_segments(problem, ref, plan)
     forced = warm_start(hybrid, problem, ref.batch, cfg)
     if forced is not None:

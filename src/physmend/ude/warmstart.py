@@ -339,6 +339,9 @@ def warm_start(hybrid: HybridModel, problem: Problem, batch: Batch, cfg: Any) ->
         from physmend.ude.hybrid import UDEConfigError
 
         raise UDEConfigError(f"train.warm_start must be 'auto' or 'none', but got {mode!r}")
+    from physmend.ude.timescale import resolved
+
+    cfg = resolved(cfg, problem)
     forced = forced_trajectories(problem, batch, hybrid, float(cfg.train.step))
     if forced is None:
         return None

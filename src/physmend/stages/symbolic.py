@@ -270,7 +270,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.tracking import TrackingError, get_run, open_store, stage_run
     from physmend.ude.analysis import training_trajectories
     from physmend.ude.timescale import resolve_times
-    from physmend.ude.train import checkpoint_problem, varying_parameters
+    from physmend.ude.train import checkpoint_problem, informative_parameters
 
     store = open_store(cfg.tracking)
     sens_run = resolve(store, source_run_id, stages=("sensitivity",), latest=source_run_id is None)
@@ -281,7 +281,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     sc = cfg.symbolic
     kept = sens_run.data.tags.get("physmend.kept", "").split(",")
     inputs = [n for n in sens_run.data.tags.get("physmend.inputs", "").split(",") if n]
-    params = varying_parameters(problem) if sc.parameters == "auto" else [str(p) for p in (sc.parameters or [])]
+    params = informative_parameters(problem) if sc.parameters == "auto" else [str(p) for p in (sc.parameters or [])]
     unknown = [p for p in params if p not in problem.model.parameter_names]
     if unknown:
         raise TrackingError(f"symbolic.parameters names {unknown}, which are not parameters of model {problem.model.name!r}")

@@ -128,14 +128,27 @@ def _stats(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torc
     return mean, torch.where(std < floor, torch.maximum(floor, torch.ones_like(std) * (std < 1e-12)), std)
 
 
-def varying_parameters(problem: Problem) -> list[str]:
-    """Parameters whose values differ between training experiments (the configuration)."""
+MIN_PARAMETER_VALUES = 3
+"""A parameter is a network (and formula) input under ``auto`` when it takes at least this many
+distinct values across the training experiments: with two, it only tells the experiments apart (an
+experiment label that lets the network memorise per-experiment offsets); from three on, a smooth
+dependence on it is what fits."""
+
+
+def informative_parameters(problem: Problem, min_values: int = MIN_PARAMETER_VALUES) -> list[str]:
+    """Parameters that take at least ``min_values`` distinct values across the training experiments."""
     train = [e for e in problem.experiments if e.role == "train"]
-    if len(train) < 2:
+    if len(train) < min_values:
         return []
-    values = np.stack([np.asarray(e.parameters, dtype=float) for e in train])
-    varies = np.ptp(values, axis=0) > 1e-12 * np.maximum(np.abs(values).max(0), 1.0)
-    return [n for n, v in zip(problem.model.parameter_names, varies) if v]
+    values = np.stack([np.asarray(e.parameters, dtype=float) for e in train])  # (E, n_params)
+    out = []
+    for j, name in enumerate(problem.model.parameter_names):
+        col = values[:, j]
+        tol = 1e-9 * max(float(np.abs(col).max()), 1.0)
+        distinct = np.unique(np.round(col / tol)) if tol > 0 else np.unique(col)
+        if distinct.size >= min_values:
+            out.append(name)
+    return out
 
 
 def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
@@ -150,7 +163,7 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     if isinstance(sel.parameters, str):
         if sel.parameters != "auto":
             raise UDEConfigError(f"ude.inputs.parameters must be 'auto' or a list of names/patterns, but got {sel.parameters!r}")
-        in_params = varying_parameters(problem)
+        in_params = informative_parameters(problem)
     else:
         in_params = match_names(list(sel.parameters or []), model.parameter_names, "ude.inputs.parameters")
     if not (in_states or in_observed or in_inputs or in_params):

@@ -147,8 +147,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         module_name, func = STAGES[args.command][0].split(":")
         stage = getattr(importlib.import_module(module_name), func)
-        if args.command == "sweep":
-            stage(cfg, args.run_id, overrides=args.overrides, config_dir=args.config_dir)
+        if args.command in ("sweep", "discover"):
+            stage(cfg, getattr(args, "run_id", None), overrides=args.overrides, config_dir=args.config_dir)
         else:
             stage(cfg, getattr(args, "run_id", None))
         return 0

@@ -116,7 +116,7 @@ def test_bad_search_spaces_name_file_and_key(params: dict[str, Any], message: st
 
 def test_shape_keys_and_the_group_shapes_flag() -> None:
     """The keys a group's trials share: those that shape the stacked solve, and width and depth."""
-    assert sw.shape_keys(sw.load_space("default")) == ["ude.width", "ude.depth", "train.segment_length"]
+    assert sw.shape_keys(sw.load_space("default")) == ["ude.width", "ude.depth", "train.segment_samples"]
     space = sw.parse_space({"params": {"simulate.rtol": {"choice": [1e-4, 1e-5]}, "train.lr": {"choice": [0.1]},
                                        "ude.activation": {"choice": ["tanh"]}}}, name="s", label="s.yaml")
     assert sw.shape_keys(space) == ["simulate.rtol"]

@@ -17,7 +17,8 @@ from physmend.ude.hybrid import HybridModel
 @pytest.fixture
 def hybrid_and_traj(user_project: Path, monkeypatch: pytest.MonkeyPatch):  # noqa: ANN201
     monkeypatch.chdir(user_project)
-    cfg = compose(["model=oscillator", "data=oscillator", "ude.width=8", "ude.depth=1"], user_config_dir=user_project / "my_conf")
+    cfg = compose(["model=oscillator", "data=oscillator", "ude.width=8", "ude.depth=1", "ude.corrected=[cart.x,cart.v]"],
+                  user_config_dir=user_project / "my_conf")
     problem = load_problem(cfg)
     spec = build_spec(cfg, problem, reference(problem, cfg))
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
@@ -74,3 +75,26 @@ def test_look_alike_inputs_are_ranked_as_one_group_represented_by_the_measured_o
     assert ranked[1][1] == pytest.approx(0.75)
     # no grouping below the threshold: every input its own group
     assert len(group_inputs(hybrid, traj, ["cart.x"], 1.01, names)) == len(names)
+
+
+def test_the_symbolic_target_hands_back_what_an_estimate_absorbed(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A jointly estimated damper coefficient moved from its declared 0.4 to 1.4 N·s/m, and a network
+    that adds nothing: the target of the velocity equation (N, the units of ``mass·der(v) = …``) is
+    the whole change of that equation against the model as written, −(1.4 − 0.4)·v."""
+    from physmend.ude.analysis import equation_corrections
+
+    monkeypatch.chdir(user_project)
+    cfg = compose(["model=oscillator", "data=oscillator", "ude.width=4", "ude.depth=1"], user_config_dir=user_project / "my_conf")
+    problem = load_problem(cfg)
+    hybrid = HybridModel(problem.compiled, build_spec(cfg, problem, reference(problem, cfg)), problem.dtype)
+    assert hybrid.spec.estimated == ["damper.c"] and hybrid.spec.corrected == ["cart.v"]  # der(x) = v: a definition
+    with torch.no_grad():
+        hybrid.net[-1].weight.zero_()
+        hybrid.net[-1].bias.zero_()
+        lo, hi = hybrid.est_lo, hybrid.est_hi
+        hybrid.est_raw.copy_(torch.logit((torch.tensor([1.4], dtype=lo.dtype) - lo) / (hi - lo)))
+    traj = training_trajectories(hybrid, problem, cfg)
+    assert traj.corr.abs().max() == 0
+    target = equation_corrections(hybrid, problem, traj, ["cart.v"])[:, 0]
+    v = traj.u[:, problem.model.state_names.index("cart.v")]
+    assert torch.allclose(target, -1.0 * v, atol=1e-9)

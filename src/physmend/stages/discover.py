@@ -6,30 +6,52 @@ and each prints its finding. The proposal is left for the engineer to accept or 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from omegaconf import OmegaConf
 
 
-def run(cfg: Any, source_run_id: str | None = None) -> str:
-    """Run the whole pipeline; returns the proposal's run ID."""
+SWEEP_KEYS = ("n_trials", "space", "group", "group_shapes")
+"""``discover.<key>`` sets ``sweep.<key>`` unless the command line gives ``sweep.<key>`` itself."""
+
+
+def _key(override: str) -> str:
+    return override.split("=", 1)[0].lstrip("+~")
+
+
+def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] | None = None,
+        config_dir: str | Path | None = None) -> str:
+    """Run the whole pipeline; returns the proposal's run ID.
+
+    ``overrides``/``config_dir``: what ``cfg`` was composed from (the CLI passes them). The user's
+    settings win: a ``sweep.*`` key on the command line is kept (``discover.*`` fills the rest), and
+    a key the search space would search is left out of the search, said in one line.
+    """
     from physmend.config import ConfigError
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
 
     shapes = cfg.discover.get("group_shapes", False)
     if not isinstance(shapes, bool):  # checked before any stage writes a run
         raise ConfigError(f"discover.group_shapes must be true or false, but got {shapes!r}")
+    given = {_key(o) for o in overrides or ()}
     cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    cfg.sweep.n_trials = int(cfg.discover.n_trials)
-    cfg.sweep.space = str(cfg.discover.space)
-    cfg.sweep.group = int(cfg.discover.get("group", 1))
-    cfg.sweep.group_shapes = shapes
+    chosen = {"n_trials": int(cfg.discover.n_trials), "space": str(cfg.discover.space),
+              "group": int(cfg.discover.get("group", 1)), "group_shapes": shapes}
+    for key in SWEEP_KEYS:
+        if f"sweep.{key}" not in given:
+            cfg.sweep[key] = chosen[key]
     ids: list[tuple[str, str]] = []
     banner = "\n" + "=" * 78 + "\n== physmend discover: {} \n" + "=" * 78
     print(banner.format("1/6 diagnose"))
     ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
     print(banner.format("2/6 sweep"))
-    sweep_id = sweep.run(cfg, ids[-1][1])
+    sweep_overrides = None
+    if overrides is not None:
+        sweep_overrides = [*overrides, *(f"sweep.{k}={sweep.hydra_value(cfg.sweep[k])}"
+                                         for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
+    sweep_id = sweep.run(cfg, ids[-1][1], overrides=sweep_overrides, config_dir=config_dir, given_wins=True)
     ids.append(("sweep", sweep_id))
     print(banner.format("3/6 mask"))
     ids.append(("mask", mask.run(cfg, None)))  # the sweep's selection

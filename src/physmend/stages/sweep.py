@@ -152,6 +152,13 @@ class SearchSpace:
         """The trial's value for every parameter."""
         return {key: p.suggest(trial) for key, p in self.params.items()}
 
+    def without(self, keys: Sequence[str]) -> SearchSpace:
+        """This space no longer searching ``keys`` (dropped from its params and first trials)."""
+        drop = set(keys)
+        return SearchSpace(self.name, self.label, self.description,
+                           {k: p for k, p in self.params.items() if k not in drop},
+                           tuple({k: v for k, v in t.items() if k not in drop} for t in self.first_trials))
+
     def spec(self) -> dict[str, Any]:
         """The space as plain data (logged as ``space.yaml``, compared on resume)."""
         return {
@@ -1224,12 +1231,15 @@ def run(
     *,
     overrides: Sequence[str] | None = None,
     config_dir: str | Path | None = None,
+    given_wins: bool = False,
 ) -> str:
     """Run (or resume, or join as a worker) the sweep configured by ``cfg.sweep``; returns the parent run ID.
 
     ``overrides``/``config_dir`` are what ``cfg`` was composed from (the CLI passes them): each
     trial's config is composed from them plus the trial's values. Without them (a call from
-    Python), the trial's values are patched into a copy of ``cfg``.
+    Python), the trial's values are patched into a copy of ``cfg``. A key both given in ``overrides``
+    and searched by the space is an error, or with ``given_wins`` (``physmend discover``, whose user did
+    not pick the space) no longer searched, said in one line.
 
     Everything the user gave (space, settings, model, data, source run) is checked before any run
     is written. A diverging trial is recorded FAIL and the sweep goes on; Ctrl-C records the
@@ -1244,6 +1254,12 @@ def run(
                           "(physmend sweep … sweep.workers=N); from Python, start several processes with the same "
                           "configuration yourself (they share the study)")
     space = load_space(settings.space)
+    if overrides is not None and given_wins:
+        both = sorted({_override_key(o) for o in overrides} & set(space.params))
+        if both:
+            print(f"sweep: {', '.join(both)} given on the command line: {space.label} does not search "
+                  f"{'it' if len(both) == 1 else 'them'} in this sweep")
+            space = space.without(both)
     if overrides is not None:
         check_overrides(space, overrides)
         probe_space(space, overrides, config_dir)

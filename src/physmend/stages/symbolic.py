@@ -182,6 +182,21 @@ def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iteration
     return fitted, result
 
 
+def estimate_shifts(hybrid: Any, problem: Any) -> list[str]:
+    """``name declared → estimated (share of its range)`` for each jointly estimated parameter; a
+    parameter that moved over a quarter of its declared range is flagged: it may have absorbed part
+    of the missing physics."""
+    declared = {v.name: v for v in problem.model.parameters}
+    out = []
+    for name, value in hybrid.estimates().items():
+        var = declared[name]
+        lo, hi = var.bounds or (value, value)
+        share = (value - float(var.value)) / (hi - lo) if hi > lo else 0.0
+        flag = " — moved far: it may have absorbed part of the missing physics" if abs(share) > 0.25 else ""
+        out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({share:+.0%} of its range){flag}")
+    return out
+
+
 def tree_size(expr: sp.Expr) -> int:
     """Nodes of the expression tree (comparable to a symbolic-regression back end's length)."""
     return sum(1 for _ in sp.preorder_traversal(expr))
@@ -397,6 +412,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         consts = ", ".join(f"{k} = {v:.4g}" for k, v in c.constants.items())
         lines.append(f"{c.state}: + {c.term}   ({consts})")
     lines.append(refit_note + ".")
+    moved = estimate_shifts(hybrid, problem)
+    if moved:
+        lines.append("Jointly estimated parameters (what they changed in the kept equations is part of each fitted "
+                     "term, which is attached to the model as written): " + "; ".join(moved) + ".")
     if metrics:
         lines.append(f"Corrected model (no network): validation RMSE {metrics.get('val.rmse', float('nan')):.4g}.")
     print("\n".join(lines))

@@ -151,11 +151,31 @@ def informative_parameters(problem: Problem, min_values: int = MIN_PARAMETER_VAL
     return out
 
 
+def identity_states(problem: Problem) -> list[str]:
+    """States whose equation is a definition, ``der(x) = y`` with ``y`` another state (a position and
+    its velocity): nothing physical can be missing from it, so a correction there could only be a
+    solver artefact standing in for physics missing elsewhere (the seed paper's dummy derivatives)."""
+    model = problem.model
+    states = set(model.state_names)
+    out = []
+    for name in model.state_names:
+        rhs, coef = model.rhs.get(name), model.der_coefficient.get(name, 1)
+        if rhs is not None and getattr(rhs, "is_Symbol", False) and rhs.name in states and rhs.name != name \
+                and coef == 1:
+            out.append(name)
+    return out
+
+
 def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
-    """Choose corrected equations and network inputs from ``cfg.ude``; normalise from ``ref``."""
+    """Choose corrected equations and network inputs from ``cfg.ude``; normalise from ``ref``.
+
+    ``ude.corrected`` patterns select the corrected equations; a pattern that is a wildcard (``*``)
+    leaves out definitional equations (:func:`identity_states`); naming one corrects it."""
     ude = cfg.ude
     model = problem.model
     corrected = match_names(list(ude.corrected), model.state_names, "ude.corrected")
+    named = {str(p) for p in ude.corrected}
+    corrected = [n for n in corrected if n in named or n not in identity_states(problem)]
     sel = ude.inputs
     in_states = model.state_names if bool(sel.states) else []
     in_observed = match_names(list(sel.observed or []), list(model.observed), "ude.inputs.observed")

@@ -10,7 +10,7 @@ from physmend.tracking.store import TrackingError
 from physmend.ude.hybrid import UDEConfigError
 from physmend.symbolic import SymbolicError
 from physmend.explain.mechanisms import MechanismError
-from physmend.ude.train import TrainingDiverged
+from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.io import ArtifactError
 
 USER_ERRORS: tuple[type[Exception], ...] = (

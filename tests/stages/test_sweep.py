@@ -21,7 +21,8 @@ from omegaconf import OmegaConf
 
 from physmend.cli import main
 from physmend.config import ConfigError, compose
-from physmend.stages import sweep as sw
+import physmend.sweep as sw
+from physmend.stages import sweep as stage
 
 TINY = [
     "model=oscillator", "data=oscillator", "train.epochs=4", "train.eval_every=2", "train.step=0.1",
@@ -371,7 +372,7 @@ def test_stale_trial_of_a_dead_worker_is_failed_and_replaced(user_project: Path,
     monkeypatch.chdir(user_project)
     # from Python, without the overrides: trial values are patched into the composed config
     cfg = compose(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=1")[3:], user_config_dir=user_project / "my_conf")
-    parent_id = sw.run(cfg)
+    parent_id = stage.run(cfg)
     store, _ = open_stores(user_project)
     (kid,) = children(store, parent_id)
     trial_cfg = OmegaConf.load(store.client.download_artifacts(kid.info.run_id, "config.yaml", str(user_project)))
@@ -460,7 +461,7 @@ def test_workers_option_needs_the_command_line(user_project: Path, monkeypatch: 
     monkeypatch.chdir(user_project)
     cfg = compose([*TINY, "sweep.space=small", "sweep.workers=2"], user_config_dir=user_project / "my_conf")
     with pytest.raises(ConfigError, match=r"sweep.workers=2 starts worker processes from the command line"):
-        sw.run(cfg)
+        stage.run(cfg)
     assert not (user_project / "mlflow.db").exists() and not (user_project / "optuna.db").exists()  # nothing written
 
 

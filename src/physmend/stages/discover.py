@@ -31,6 +31,7 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     """
     from physmend.config import ConfigError
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
+    from physmend.sweep import hydra_value
 
     shapes = cfg.discover.get("group_shapes", False)
     if not isinstance(shapes, bool):  # checked before any stage writes a run
@@ -49,7 +50,7 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     print(banner.format("2/6 sweep"))
     sweep_overrides = None
     if overrides is not None:
-        sweep_overrides = [*overrides, *(f"sweep.{k}={sweep.hydra_value(cfg.sweep[k])}"
+        sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
                                          for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
     sweep_id = sweep.run(cfg, ids[-1][1], overrides=sweep_overrides, config_dir=config_dir, given_wins=True)
     ids.append(("sweep", sweep_id))

@@ -58,7 +58,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.tracking import TrackingError, open_store, stage_run
     from physmend.ude import evaluate, train
     from physmend.ude.analysis import rank_corrections, training_trajectories
-    from physmend.ude.train import checkpoint_problem
+    from physmend.ude.metrics import checkpoint_problem
 
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("trial",))

@@ -108,7 +108,7 @@ def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]
     fails on some experiment, or an output of a training or validation experiment is not finite.
     """
     from physmend.simulate import SimulationError
-    from physmend.ude.train import reference
+    from physmend.ude.reference import reference
 
     try:
         ref = reference(problem, problem_cfg)
@@ -153,7 +153,8 @@ def with_parameters(problem: Any, values: dict[str, float]) -> Any:
 def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True) -> dict[str, float]:
     """Whole-trajectory metrics (``val.rmse`` …, see :func:`physmend.ude.train.metrics_of`) of the
     corrected model from its simulation ``ref`` (:func:`simulate_corrected`)."""
-    from physmend.ude.train import TrainingDiverged, metrics_of
+    from physmend.ude.metrics import metrics_of
+    from physmend.ude.outcome import TrainingDiverged
 
     with torch.no_grad():
         y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])
@@ -285,7 +286,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.tracking import TrackingError, get_run, open_store, stage_run
     from physmend.ude.analysis import training_trajectories
     from physmend.ude.timescale import resolve_times
-    from physmend.ude.train import checkpoint_problem, informative_parameters
+    from physmend.ude.metrics import checkpoint_problem
+    from physmend.ude.spec import informative_parameters
 
     store = open_store(cfg.tracking)
     sens_run = resolve(store, source_run_id, stages=("sensitivity",), latest=source_run_id is None)

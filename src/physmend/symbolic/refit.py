@@ -76,7 +76,8 @@ class _Shooting:
 
     def __init__(self, problem: Any, cfg: Any, ref: Any, names: Sequence[str]) -> None:
         from physmend.ude.hybrid import HybridModel, HybridSpec
-        from physmend.ude.train import _initial_segments, _output_spread, _train_mask, plan_shooting
+        from physmend.ude.reference import _train_mask
+        from physmend.ude.shooting import _initial_segments, _output_spread, plan_shooting
         from physmend.ude.warmstart import forced_trajectories, segment_starts
 
         compiled = problem.compiled
@@ -127,7 +128,7 @@ class _Shooting:
     def _solve(self, u0: torch.Tensor, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """RK4 over ``C`` stacked copies of the segments: ``u0, p (C·S, ·)`` -> states ``(K+1, C·S, n)``
         and outputs ``(K+1, C·S, k)`` on the grid."""
-        from physmend.ude.train import rk4_segments
+        from physmend.ude.shooting import rk4_segments
 
         copies = u0.shape[0] // self.S
         plan = self.plan if copies == 1 else dataclasses.replace(self.plan, x_half=self.plan.x_half.repeat(1, copies, 1))

@@ -4,7 +4,10 @@ from __future__ import annotations
 
 from physmend.ude.hybrid import HybridModel, HybridSpec, UDEConfigError
 from physmend.ude.io import ArtifactError, load_hybrid
-from physmend.ude.train import TrainingDiverged, TrainResult, evaluate, reference, train
+from physmend.ude.metrics import evaluate
+from physmend.ude.outcome import TrainResult, TrainingDiverged
+from physmend.ude.reference import reference
+from physmend.ude.train import train
 
 __all__ = [
     "ArtifactError",

@@ -15,7 +15,7 @@ import torch
 from physmend.problem import Problem
 from physmend.simulate import Batch, make_batch
 from physmend.ude.hybrid import HybridModel
-from physmend.ude.train import _sim_opts, _train_mask, simulate_with
+from physmend.ude.reference import _sim_opts, _train_mask, simulate_with
 
 
 @dataclass

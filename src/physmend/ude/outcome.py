@@ -1,0 +1,25 @@
+"""What training returns: a model's :class:`TrainResult`, or :class:`TrainingDiverged`. Imports ``hybrid``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from physmend.ude.hybrid import HybridModel
+
+
+class TrainingDiverged(RuntimeError):
+    """Training produced non-finite losses or trajectories; the message says when and why."""
+
+
+@dataclass
+class TrainResult:
+    """Outcome of one training run (see :func:`train`)."""
+
+    val_rmse: float
+    metrics: dict[str, float]
+    history: list[dict[str, float]]
+    artifacts: dict[str, str | bytes]
+    figures: dict[str, Any] = field(default_factory=dict)
+    hybrid: HybridModel | None = None

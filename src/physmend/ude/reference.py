@@ -1,0 +1,96 @@
+"""The model as written, simulated on every experiment (the reference the network's inputs are
+normalised from), the solver options, and the training/validation sample masks. Imports ``simulate``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from physmend.problem import Problem
+from physmend.simulate import Batch, make_batch, odeint
+from physmend.simulate.core import OWN_METHODS
+
+
+@dataclass
+class Reference:
+    """The model as written, simulated on every experiment (no gradients)."""
+
+    batch: Batch
+    states: torch.Tensor  # (T, B, n)
+    derivs: torch.Tensor  # (T, B, n)
+    inputs: torch.Tensor  # (T, B, m)
+    observed: torch.Tensor  # (T, B, k)
+
+
+def _sim_opts(cfg: Any) -> dict[str, Any]:
+    return {
+        "method": str(cfg.simulate.method),
+        "rtol": float(cfg.simulate.rtol),
+        "atol": float(cfg.simulate.atol),
+        "options": dict(cfg.simulate.get("options") or {}),
+    }
+
+
+def _kinks(batch: Batch, method: str) -> dict[str, Any]:
+    knots = batch.inputs.knots
+    inner = knots[(knots > batch.t[0]) & (knots < batch.t[-1])]
+    if not inner.numel():
+        return {}
+    return {"tstops": inner} if method in OWN_METHODS else {"step_t": inner}
+
+
+def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], batch: Batch, u0: torch.Tensor, sim: dict[str, Any],
+                  jac: Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None = None) -> torch.Tensor:
+    """Whole-trajectory simulation of ``rhs(u, x)`` on ``batch``: states ``(T, B, n)``.
+
+    ``jac(u, x)``: the exact ``d rhs / du (B, n, n)``, used by the stiff solver instead of finite
+    differences (which cost ``n`` extra right-hand sides per step).
+    """
+    options = {**_kinks(batch, sim["method"]), **sim["options"]}
+
+    def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        return rhs(u, batch.inputs(t))
+
+    if jac is not None and sim["method"] in OWN_METHODS and "jacobian" not in options:
+        options["jacobian"] = lambda t, u: jac(u, batch.inputs(t))
+
+    return odeint(f, u0, batch.t, method=sim["method"], rtol=sim["rtol"], atol=sim["atol"], options=options, names=batch.ids)
+
+
+def reference(problem: Problem, cfg: Any) -> Reference:
+    model = problem.compiled
+    batch = make_batch(problem.experiments, model, problem.dtype)
+    with torch.no_grad():
+        rhs = model.bind(batch.params)
+        states = simulate_with(rhs, batch, batch.u0, _sim_opts(cfg), model.jacobian(batch.params))
+        x = batch.inputs.at(batch.t)
+        derivs = rhs(states, x)
+        observed = model.observed(states, x, batch.params[None])
+    return Reference(batch, states, derivs, x, observed)
+
+
+def _train_mask(problem: Problem, batch: Batch) -> torch.Tensor:
+    """``(T, B)`` True where a time belongs to a training sample (train role, before the split)."""
+    roles = torch.tensor([e.role == "train" for e in problem.experiments])
+    return (batch.t[:, None] < batch.split_time[None, :]) & roles[None, :]
+
+
+def _val_mask(problem: Problem, batch: Batch) -> torch.Tensor:
+    if any(e.role == "validation" for e in problem.experiments):
+        roles = torch.tensor([e.role == "validation" for e in problem.experiments])
+        return roles[None, :].expand(batch.t.shape[0], -1).clone()
+    roles = torch.tensor([e.role == "train" for e in problem.experiments])
+    return (batch.t[:, None] >= batch.split_time[None, :]) & roles[None, :]
+
+
+def _stats(values: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and std over masked ``(T, B)`` entries of ``values (T, B, k)``; std floored."""
+    v = values[mask]
+    mean = v.mean(0)
+    std = v.std(0) if v.shape[0] > 1 else torch.ones_like(mean)
+    floor = 1e-3 * mean.abs().clamp_min(1.0)
+    return mean, torch.where(std < floor, torch.maximum(floor, torch.ones_like(std) * (std < 1e-12)), std)

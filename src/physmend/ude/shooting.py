@@ -1,0 +1,192 @@
+"""Multiple shooting: the plan of segments over the training records, fixed-step RK4 over all
+segments at once, chained segment starts, and the scales of the loss. Imports ``reference``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+import math
+
+import numpy as np
+import torch
+
+from physmend.problem import Problem
+from physmend.simulate import Batch
+from physmend.ude.hybrid import HybridSpec, UDEConfigError
+from physmend.ude.reference import Reference
+
+
+@dataclass
+class Shooting:
+    """Segments of all training records on a uniform grid of step ``dt`` (s)."""
+
+    dt: float
+    steps: int  # grid steps per segment
+    exp_index: torch.Tensor  # (S,) batch element of each segment
+    first: torch.Tensor  # (S,) True for the first segment of an experiment
+    starts: torch.Tensor  # (S,) start time (s)
+    x_half: torch.Tensor  # (2*steps+1, S, m) inputs at every half step
+    obs_k: torch.Tensor  # (N,) grid interval of each observation
+    obs_w: torch.Tensor  # (N,) linear weight within the interval
+    obs_s: torch.Tensor  # (N,) segment of each observation
+    obs_j: torch.Tensor  # (N,) output index
+    obs_y: torch.Tensor  # (N,) measured value
+    next_of: torch.Tensor  # (S,) index of the following segment of the same experiment, -1 if last
+
+
+def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
+    from physmend.ude.timescale import resolved
+
+    cfg = resolved(cfg, problem)
+    dt = float(cfg.train.step)
+    seg = float(cfg.train.segment_length)
+    if not (dt > 0 and seg >= dt):
+        raise UDEConfigError(f"train.step and train.segment_length need 0 < step <= segment_length, but got ({dt}, {seg})")
+    steps = int(round(seg / dt))
+    dtype = batch.t.dtype
+    exp_idx, first, starts = [], [], []
+    obs: list[tuple[int, int, float, int, float]] = []
+    for b, e in enumerate(problem.experiments):
+        if e.role != "train":
+            continue
+        end = float(e.split_time) if e.split_time is not None else float(e.obs_time[-1])
+        n_seg = max(1, math.ceil(end / (steps * dt) - 1e-9))
+        base = len(starts)
+        for k in range(n_seg):
+            exp_idx.append(b)
+            first.append(k == 0)
+            starts.append(k * steps * dt)
+        for i, tt in enumerate(e.obs_time):
+            if tt >= end and e.split_time is not None:
+                break
+            s = min(int(tt // (steps * dt)), n_seg - 1)
+            local = (tt - starts[base + s]) / dt
+            k = min(int(local), steps - 1)
+            for j in range(e.obs.shape[1]):
+                y = e.obs[i, j]
+                if np.isfinite(y):
+                    obs.append((base + s, k, local - k, j, float(y)))
+    S = len(starts)
+    if S == 0:
+        raise UDEConfigError("training needs at least one experiment with role 'train'")
+    exp_t = torch.tensor(exp_idx)
+    start_t = torch.tensor(starts, dtype=dtype)
+    grid = start_t[None, :] + torch.arange(2 * steps + 1, dtype=dtype)[:, None] * (dt / 2)  # (2K+1, S)
+    x_half = batch.inputs.select(exp_t).at_each(grid)  # (2K+1, S, m): each segment's own inputs
+    next_of = torch.full((S,), -1, dtype=torch.long)
+    for s in range(S - 1):
+        if exp_idx[s + 1] == exp_idx[s] and not first[s + 1]:
+            next_of[s] = s + 1
+    o = list(zip(*obs))
+    return Shooting(
+        dt=dt,
+        steps=steps,
+        exp_index=exp_t,
+        first=torch.tensor(first),
+        starts=start_t,
+        x_half=x_half,
+        obs_s=torch.tensor(o[0]),
+        obs_k=torch.tensor(o[1]),
+        obs_w=torch.tensor(o[2], dtype=dtype),
+        obs_j=torch.tensor(o[3]),
+        obs_y=torch.tensor(o[4], dtype=dtype),
+        next_of=next_of,
+    )
+
+
+def rk4_segments(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting) -> torch.Tensor:
+    """Fixed-step RK4 over all segments at once: states at grid points ``(steps+1, S, n)``."""
+    h = plan.dt
+    u = u0
+    out = [u]
+    for k in range(plan.steps):
+        x0, xm, x1 = plan.x_half[2 * k], plan.x_half[2 * k + 1], plan.x_half[2 * k + 2]
+        k1 = rhs(u, x0)
+        k2 = rhs(u + 0.5 * h * k1, xm)
+        k3 = rhs(u + 0.5 * h * k2, xm)
+        k4 = rhs(u + h * k3, x1)
+        u = u + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        out.append(u)
+    return torch.stack(out)
+
+
+def chained_starts(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting,
+                   models: int = 1, keep: Sequence[int] = ()) -> torch.Tensor:
+    """Segment starts chained by ``rhs``: every segment after an experiment's first starts where
+    ``rhs`` takes the one before it (fixed-step RK4 on the training grid, no gradients), except in
+    the state columns ``keep`` (e.g. measured states, which start at their records).
+
+    With ``keep`` empty this is single shooting: no gaps at all. ``u0 (models·S, n)``: starts of
+    ``models`` stacked copies of the plan's ``S`` segments, rows model-major (``rhs`` and
+    ``plan.x_half`` cover all rows); first segments keep theirs. A model whose chained trajectory
+    leaves the finite range keeps its ``u0`` rows. Costs one RK4 pass over all segments per segment
+    of the longest experiment.
+    """
+    S = plan.next_of.shape[0]
+    has = plan.next_of >= 0
+    if not bool(has.any()):
+        return u0.clone()
+    offsets = (torch.arange(models) * S)[:, None]
+    src = (torch.nonzero(has).flatten()[None] + offsets).flatten()
+    dst = (plan.next_of[has][None] + offsets).flatten()
+    depth = int(torch.bincount(plan.exp_index).max())
+    with torch.no_grad():
+        u = u0.clone()
+        cols = torch.tensor([i for i in range(u.shape[-1]) if i not in set(keep)], dtype=torch.long)
+        for _ in range(depth - 1):
+            end = rk4_segments(rhs, u, plan)[-1][src]
+            u[dst[:, None], cols[None, :]] = end[:, cols]
+        ok = torch.isfinite(u).reshape(models, -1).all(dim=1).repeat_interleave(S)
+        return torch.where(ok[:, None], u, u0)
+
+
+def _initial_segments(problem: Problem, ref: Reference, plan: Shooting) -> torch.Tensor:
+    """Segment starts from the model as written, with measured states set to their measurements."""
+    t = ref.batch.t
+    rows = torch.searchsorted(t, plan.starts).clamp(max=t.shape[0] - 1)
+    u = ref.states[rows, plan.exp_index].clone()  # (S, n)
+    names = problem.model.state_names
+    for j, out in enumerate(problem.model.output_names):
+        expr = problem.model.outputs[out]
+        if expr.is_Symbol and expr.name in names:
+            i = names.index(expr.name)
+            obs = ref.batch.obs[:, :, j]
+            for s in range(u.shape[0]):
+                col = obs[:, plan.exp_index[s]]
+                ok = torch.isfinite(col)
+                if ok.any():
+                    k = int(torch.argmin((t - plan.starts[s]).abs() + (~ok) * 1e30))
+                    u[s, i] = col[k]
+    return u
+
+
+def _output_spread(obs: torch.Tensor) -> torch.Tensor:
+    """Standard deviation of each output over finite training samples ``obs (N, k)``: ``(k,)``."""
+    cols = []
+    for c in obs.T:
+        c = c[torch.isfinite(c)]
+        cols.append(c.std() if c.numel() > 1 else torch.tensor(1.0, dtype=obs.dtype))
+    return torch.stack(cols).clamp_min(1e-9)
+
+
+def _equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
+    """``a_i`` per segment ``(S, k)`` of the corrected equations ``a_i·der(x_i) = …`` and one
+    reference size ``()``: the mean RMS of ``a_i·du_i/dt`` along the model-as-written simulation."""
+    from physmend.modeling.compile import lambdify_torch
+
+    model = problem.model
+    if not spec.corrected:
+        return torch.ones(params_seg.shape[0], 0, dtype=params_seg.dtype), torch.ones((), dtype=params_seg.dtype)
+    psyms = [v.symbol for v in model.parameters]
+    fn = lambdify_torch(psyms, [model.der_coefficient[n] for n in spec.corrected], "der coefficients")
+
+    def coefs(p: torch.Tensor) -> torch.Tensor:
+        vals = fn(*p.unbind(-1))
+        return torch.stack([torch.as_tensor(v, dtype=p.dtype).expand(p.shape[:-1]) for v in vals], -1)
+
+    idx = [model.state_names.index(n) for n in spec.corrected]
+    power = ref.derivs[..., idx] * coefs(ref.batch.params)[None]
+    ref_size = power.pow(2).mean(dim=(0, 1)).sqrt().mean().clamp_min(1e-30)
+    return coefs(params_seg), ref_size

@@ -1,0 +1,106 @@
+"""The hybrid's specification from ``cfg.ude``: corrected equations (definitions left out), network
+inputs (parameters under ``auto``), normalisation, jointly estimated parameters. Imports ``reference``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from physmend.problem import Problem
+from physmend.ude.hybrid import HybridSpec, UDEConfigError, match_names
+from physmend.ude.reference import Reference, _stats, _train_mask
+
+
+MIN_PARAMETER_VALUES = 3
+"""A parameter is a network (and formula) input under ``auto`` when it takes at least this many
+distinct values across the training experiments: with two, it only tells the experiments apart (an
+experiment label that lets the network memorise per-experiment offsets); from three on, a smooth
+dependence on it is what fits."""
+
+
+def informative_parameters(problem: Problem, min_values: int = MIN_PARAMETER_VALUES) -> list[str]:
+    """Parameters that take at least ``min_values`` distinct values across the training experiments."""
+    train = [e for e in problem.experiments if e.role == "train"]
+    if len(train) < min_values:
+        return []
+    values = np.stack([np.asarray(e.parameters, dtype=float) for e in train])  # (E, n_params)
+    out = []
+    for j, name in enumerate(problem.model.parameter_names):
+        col = values[:, j]
+        tol = 1e-9 * max(float(np.abs(col).max()), 1.0)
+        distinct = np.unique(np.round(col / tol)) if tol > 0 else np.unique(col)
+        if distinct.size >= min_values:
+            out.append(name)
+    return out
+
+
+def identity_states(problem: Problem) -> list[str]:
+    """States whose equation is a definition, ``der(x) = y`` with ``y`` another state (a position and
+    its velocity): nothing physical can be missing from it, so a correction there could only be a
+    solver artefact standing in for physics missing elsewhere (the seed paper's dummy derivatives)."""
+    model = problem.model
+    states = set(model.state_names)
+    out = []
+    for name in model.state_names:
+        rhs, coef = model.rhs.get(name), model.der_coefficient.get(name, 1)
+        if rhs is not None and getattr(rhs, "is_Symbol", False) and rhs.name in states and rhs.name != name \
+                and coef == 1:
+            out.append(name)
+    return out
+
+
+def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
+    """Choose corrected equations and network inputs from ``cfg.ude``; normalise from ``ref``.
+
+    ``ude.corrected`` patterns select the corrected equations; a pattern that is a wildcard (``*``)
+    leaves out definitional equations (:func:`identity_states`); naming one corrects it."""
+    ude = cfg.ude
+    model = problem.model
+    corrected = match_names(list(ude.corrected), model.state_names, "ude.corrected")
+    named = {str(p) for p in ude.corrected}
+    corrected = [n for n in corrected if n in named or n not in identity_states(problem)]
+    sel = ude.inputs
+    in_states = model.state_names if bool(sel.states) else []
+    in_observed = match_names(list(sel.observed or []), list(model.observed), "ude.inputs.observed")
+    in_inputs = model.input_names if bool(sel.inputs) else []
+    if isinstance(sel.parameters, str):
+        if sel.parameters != "auto":
+            raise UDEConfigError(f"ude.inputs.parameters must be 'auto' or a list of names/patterns, but got {sel.parameters!r}")
+        in_params = informative_parameters(problem)
+    else:
+        in_params = match_names(list(sel.parameters or []), model.parameter_names, "ude.inputs.parameters")
+    if not (in_states or in_observed or in_inputs or in_params):
+        raise UDEConfigError("ude.inputs selects no network input; enable states, inputs, observed or parameters")
+    estimated = [v.name for v in model.parameters if v.uncertain] if bool(cfg.train.estimate_parameters) else []
+    widths = [int(ude.width)] * int(ude.depth)
+    mask = _train_mask(problem, ref.batch)
+    cm = problem.compiled
+    feats = [ref.states[..., [cm.state_names.index(n) for n in in_states]]]
+    if in_observed:
+        feats.append(ref.observed[..., [cm.observed_names.index(n) for n in in_observed]])
+    if in_inputs:
+        feats.append(ref.inputs[..., [cm.input_names.index(n) for n in in_inputs]])
+    if in_params:
+        p = ref.batch.params[:, [cm.parameter_names.index(n) for n in in_params]]
+        feats.append(p[None].expand(ref.states.shape[0], -1, -1))
+    mean, std = _stats(torch.cat(feats, -1), mask)
+    d = ref.derivs[..., [cm.state_names.index(n) for n in corrected]][mask]
+    rms = d.pow(2).mean(0).sqrt()
+    if corrected:
+        rms = torch.where(rms > 0, rms, torch.ones_like(rms) * rms.max().clamp_min(1e-9))
+    return HybridSpec(
+        corrected=corrected,
+        in_states=in_states,
+        in_observed=in_observed,
+        in_inputs=in_inputs,
+        in_parameters=in_params,
+        widths=widths,
+        activation=str(ude.activation),
+        mean=mean.tolist(),
+        std=std.tolist(),
+        out_scale=(float(ude.output_scale) * rms).tolist(),
+        estimated=estimated,
+    )

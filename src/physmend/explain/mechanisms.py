@@ -125,12 +125,12 @@ class MechanismMatch:
 
 
 def _parse_template(text: str, where: str) -> sympy.Expr:
-    names = set(re.findall(r"[A-Za-z_]\w*", text)) - set(TEMPLATE_FUNCTIONS)
-    local = dict(TEMPLATE_FUNCTIONS)
-    local.update({n: sympy.Symbol(n) for n in names})
-    try:
-        expr = sympy.sympify(text, locals=local)
-    except (sympy.SympifyError, SyntaxError, TypeError) as exc:
+    from physmend.modeling.errors import ModelError
+    from physmend.modeling.safe_parse import parse_safe
+
+    try:  # a catalogue is data: the restricted parser, never sympify
+        expr = parse_safe(str(text), where=f"{where}: template", new_symbols=True)
+    except ModelError as exc:
         raise CatalogueError(f"{where}: template must be a sympy expression, but got {text!r} ({exc})") from exc
     if not isinstance(expr, sympy.Expr):
         raise CatalogueError(f"{where}: template must be a sympy expression, but got {text!r}")
@@ -300,7 +300,10 @@ def classify(
     """
     if isinstance(top, bool) or not isinstance(top, int) or top < 1:
         raise MechanismError(f"top must be an integer >= 1, but got {top!r}")
-    expr = sympy.sympify(expr)
+    if isinstance(expr, str):
+        from physmend.modeling.safe_parse import parse_safe
+
+        expr = parse_safe(expr, where="formula", new_symbols=True)
     catalogue = load_catalogue(catalogue_path)
     cols, y = _samples(expr, samples)
     names = sorted(cols)

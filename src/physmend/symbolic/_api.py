@@ -152,7 +152,10 @@ def fit(
     columns = {name: X[:, j] for j, name in enumerate(names)}
     candidates: list[Candidate] = []
     for expr, complexity, terms, text in raw:
-        expr = sympy.sympify(expr)
+        if isinstance(expr, str):  # a back end's text: the restricted parser, never sympify
+            from physmend.modeling.safe_parse import parse_safe
+
+            expr = parse_safe(expr, where=f"{backend} formula", new_symbols=True)
         y_hat = evaluate(expr, columns, n=n)
         if not np.isfinite(y_hat).all():
             continue

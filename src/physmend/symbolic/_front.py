@@ -52,9 +52,12 @@ class Candidate:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Candidate:
         _require(d, ("expr", "complexity", "mse", "r2", "text"), "candidate")
-        try:
-            expr = sympy.sympify(d["expr"])
-        except (sympy.SympifyError, SyntaxError, TypeError, NameError) as exc:
+        from physmend.modeling.errors import ModelError
+        from physmend.modeling.safe_parse import parse_safe
+
+        try:  # stored data: parsed by the restricted parser, never evaluated
+            expr = parse_safe(d["expr"], where="candidate 'expr'", new_symbols=True)
+        except ModelError as exc:
             raise SymbolicError(f"candidate 'expr' must be a sympy srepr string, but got {d['expr']!r} ({exc})") from exc
         return cls(
             expr=expr,

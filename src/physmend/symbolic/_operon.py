@@ -89,12 +89,14 @@ def resolve_options(options: dict) -> dict[str, Any]:
 
 def parse_model(text: str, names: list[str]) -> sympy.Expr:
     """Parse a pyoperon infix string written with stand-ins ``x0..`` into an expression in ``names``."""
-    local = dict(_FUNCTIONS)
-    local.update({f"x{i}": sympy.Symbol(name) for i, name in enumerate(names)})
+    from physmend.modeling.errors import ModelError
+    from physmend.modeling.safe_parse import parse_safe
+
+    local = {f"x{i}": sympy.Symbol(name) for i, name in enumerate(names)}
     try:
-        return sympy.sympify(text, locals=local, convert_xor=True)
-    except (sympy.SympifyError, SyntaxError, TypeError) as exc:
-        raise SymbolicError(f"could not parse the pyoperon model {text!r} with sympy ({exc})") from exc
+        return parse_safe(text, local, where="pyoperon model")  # restricted: nothing is evaluated as Python
+    except ModelError as exc:
+        raise SymbolicError(f"could not parse the pyoperon model {text!r} ({exc})") from exc
 
 
 def search(

@@ -104,10 +104,12 @@ def search(
     model = PySRRegressor(**settings)
     model.fit(X, y, variable_names=stand_ins)
 
+    from physmend.modeling.safe_parse import parse_safe
+
     by_name = {f"x{i}": sympy.Symbol(name) for i, name in enumerate(names)}
     out = []
     for _, row in model.equations_.iterrows():
-        expr = sympy.sympify(row["sympy_format"])
+        expr = parse_safe(str(row["sympy_format"]), where="PySR formula", new_symbols=True)
         expr = expr.xreplace({s: by_name[s.name] for s in expr.free_symbols if s.name in by_name})
         unknown = [s.name for s in expr.free_symbols if s.name not in names]
         if unknown:

@@ -173,7 +173,7 @@ def _config(example: Path, corrections: Path | None = None) -> Any:
 
     overrides = [f"model={example.name}", f"data={example.name}"]
     if corrections is not None:
-        overrides.append(f"model.corrections={corrections}")
+        overrides.append(f"++model.corrections={corrections}")
     return compose(overrides, user_config_dir=example / "conf")
 
 

@@ -326,10 +326,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         description="Regenerate the synthetic cargo-box telemetry (deterministic).",
     )
     parser.add_argument("--out", type=Path, default=TELEMETRY_DIR, help=f"output folder (default: {TELEMETRY_DIR})")
-    parser.add_argument("--truth", type=Path, default=TRUTH_DIR,
-                        help=f"folder for the noise-free truth of every experiment (default: {TRUTH_DIR})")
+    parser.add_argument("--truth", type=Path, default=None,
+                        help=f"folder for the noise-free truth of every experiment (default: {TRUTH_DIR} when "
+                             "--out is the default, none otherwise)")
     args = parser.parse_args(argv)
-    for path in generate(args.out, truth_out=args.truth):
+    truth = args.truth if args.truth is not None else (TRUTH_DIR if args.out == TELEMETRY_DIR else None)
+    for path in (generate(args.out, truth_out=truth) if truth is not None else generate(args.out)):
         print(f"wrote {path} ({path.stat().st_size} bytes)")
     return 0
 

@@ -67,3 +67,34 @@ def test_stored_formulas_still_read_back() -> None:
     expr = sp.Float(1.02) * (x - y) * sp.sqrt(sp.Abs(x - y)) + sp.Max(x, 3) - sp.sign(y) * sp.exp(-x)
     back = Candidate.from_dict({"expr": sp.srepr(expr), "complexity": 9, "mse": 0.1, "r2": 0.9, "text": "t"}).expr
     assert sp.simplify(back - expr) == 0
+
+
+def test_a_stored_config_is_data(tmp_path: Path) -> None:
+    """A run's config.yaml naming a builder that would write a file, or reading the environment:
+    the user's own model configuration is used (or the difference is a clear error), nothing runs,
+    and an interpolation is refused, not resolved."""
+    from omegaconf import OmegaConf
+
+    from physmend.tracking import TrackingError
+    from physmend.tracking.stored_config import read_stored_config
+
+    marker = tmp_path / "pwned"
+    evil = tmp_path / "evil.py"
+    evil.write_text(f"import pathlib\npathlib.Path({str(marker)!r}).write_text('x')\ndef build():\n    return None\n")
+    current = compose([])
+    stored = OmegaConf.to_container(current, resolve=True)
+    stored["model"]["builder"] = f"{evil}:build"
+    path = tmp_path / "config.yaml"
+    path.write_text(OmegaConf.to_yaml(OmegaConf.create(stored)))
+    with pytest.raises(TrackingError, match=r"run 'r1' was made with another model configuration \(model.builder: "):
+        read_stored_config(path, "r1", current)
+    assert not marker.exists()
+    stored["model"] = OmegaConf.to_container(current.model, resolve=True)
+    stored["train"]["lr"] = "${oc.env:HOME}"
+    path.write_text(OmegaConf.to_yaml(OmegaConf.create(stored)))
+    with pytest.raises(TrackingError, match=r"holds an interpolation at train.lr \('\$\{oc.env:HOME\}'\); a stored "
+                                           r"configuration is data and is never resolved"):
+        read_stored_config(path, "r1", current)
+    stored["train"]["lr"] = 0.01
+    path.write_text(OmegaConf.to_yaml(OmegaConf.create(stored)))
+    assert read_stored_config(path, "r1", current).model.builder == current.model.builder

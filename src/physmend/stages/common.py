@@ -56,8 +56,13 @@ def resolve(store: Store, run_id: str | None, *, stages: tuple[str, ...], latest
     return run
 
 
-def load_source(store: Store, run: Any, *, with_model: bool = True) -> Source:
-    """Rebuild the config, problem and (``with_model``) hybrid model from a run's plain-file artifacts."""
+def load_source(store: Store, run: Any, current: DictConfig | None, *, with_model: bool = True) -> Source:
+    """Rebuild the config, problem and (``with_model``) hybrid model from a run's plain-file artifacts.
+
+    ``current``: the user's composed configuration; the model and data are built from it, after
+    checking the run was made with the same (:mod:`physmend.tracking.stored_config`)."""
+    from physmend.tracking.stored_config import read_stored_config
+
     from physmend.problem import load_problem
     from physmend.ude import ArtifactError, load_hybrid
 
@@ -70,8 +75,7 @@ def load_source(store: Store, run: Any, *, with_model: bool = True) -> Source:
                 store.client.download_artifacts(run_id, "model", str(folder))
         except Exception as exc:  # noqa: BLE001 - any store/IO failure means "cannot load this run"
             raise TrackingError(f"run {run_id!r} lacks the artifacts physmend needs (config.yaml, model/): {exc}") from None
-        cfg = OmegaConf.load(folder / "config.yaml")
-        assert isinstance(cfg, DictConfig)
+        cfg = read_stored_config(folder / "config.yaml", run_id, current)
         problem = load_problem(cfg)
         hybrid = None
         if with_model:

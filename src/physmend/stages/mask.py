@@ -62,7 +62,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("trial",))
-    src = load_source(store, src_run)
+    src = load_source(store, src_run, cfg)
     work = merged(src.cfg, cfg, "mask")
     hybrid, problem = src.hybrid, src.problem
     mc = cfg.mask

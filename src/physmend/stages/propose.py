@@ -97,12 +97,13 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.problem import load_problem
     from physmend.stages.common import merged, resolve
     from physmend.tracking import download_artifact, open_store, stage_run
+    from physmend.tracking.stored_config import read_stored_config
 
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("symbolic",), latest=source_run_id is None)
     cfg_path = download_artifact(store, src_run.info.run_id, "config.yaml")
     corr_path = download_artifact(store, src_run.info.run_id, "corrections.yaml")
-    base_cfg = merged(OmegaConf.load(cfg_path), cfg, "propose")  # type: ignore[arg-type]
+    base_cfg = merged(read_stored_config(cfg_path, src_run.info.run_id, cfg), cfg, "propose")
     base_cfg.model.corrections = None
     corrections, _ = read_corrections(corr_path)
     before = load_problem(base_cfg)

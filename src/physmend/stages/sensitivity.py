@@ -47,7 +47,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("mask", "trial"), latest=source_run_id is None)
-    src = load_source(store, src_run)
+    src = load_source(store, src_run, cfg)
     work = merged(src.cfg, cfg, "sensitivity")
     hybrid, problem = src.hybrid, src.problem
     kept = [n for n, m in zip(hybrid.spec.corrected, hybrid.out_mask.tolist()) if m > 0]

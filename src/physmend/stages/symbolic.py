@@ -184,16 +184,18 @@ def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iteration
 
 
 def estimate_shifts(hybrid: Any, problem: Any) -> list[str]:
-    """``name declared → estimated (share of its range)`` for each jointly estimated parameter; a
-    parameter that moved over a quarter of its declared range is flagged: it may have absorbed part
-    of the missing physics."""
+    """``name declared → estimated (share of its range)`` for each jointly estimated parameter; one
+    that moved far (:func:`physmend.ude.analysis.moved_far`) is flagged."""
+    from physmend.ude.analysis import ABSORBED_SHARE
+
     declared = {v.name: v for v in problem.model.parameters}
     out = []
     for name, value in hybrid.estimates().items():
         var = declared[name]
         lo, hi = var.bounds or (value, value)
         share = (value - float(var.value)) / (hi - lo) if hi > lo else 0.0
-        flag = " — moved far: it may have absorbed part of the missing physics" if abs(share) > 0.25 else ""
+        flag = (" — moved far: taken to have absorbed part of the missing physics, handed back to the fitted term"
+                if abs(share) > ABSORBED_SHARE else "")
         out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({share:+.0%} of its range){flag}")
     return out
 
@@ -292,7 +294,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     store = open_store(cfg.tracking)
     sens_run = resolve(store, source_run_id, stages=("sensitivity",), latest=source_run_id is None)
     model_run = get_run(store, sens_run.data.tags["physmend.source_run_id"])
-    src = load_source(store, model_run)
+    src = load_source(store, model_run, cfg)
     hybrid, problem = src.hybrid, src.problem
     work = resolve_times(merged(src.cfg, cfg, "symbolic"), problem)
     sc = cfg.symbolic
@@ -416,8 +418,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     lines.append(refit_note + ".")
     moved = estimate_shifts(hybrid, problem)
     if moved:
-        lines.append("Jointly estimated parameters (what they changed in the kept equations is part of each fitted "
-                     "term, which is attached to the model as written): " + "; ".join(moved) + ".")
+        lines.append("Jointly estimated parameters: " + "; ".join(moved) + ".")
     if metrics:
         lines.append(f"Corrected model (no network): validation RMSE {metrics.get('val.rmse', float('nan')):.4g}.")
     print("\n".join(lines))

@@ -204,18 +204,22 @@ def _apply_overrides(cfg: DictConfig, overrides: Sequence[str] | dict[str, Any] 
 
 
 def load_trial(
-    store: Store, run_id: str | None = None, problem_cfg_overrides: Sequence[str] | dict[str, Any] | None = None
+    store: Store, run_id: str | None = None, problem_cfg_overrides: Sequence[str] | dict[str, Any] | None = None,
+    *, current: DictConfig | None = None,
 ) -> LoadedTrial:
     """Rebuild a trial from its run: resolved ``config.yaml``, the problem, the hybrid model.
 
     ``run_id=None`` loads the current selection. ``problem_cfg_overrides`` (``key=value`` strings
     or a mapping) patch the stored config before the problem is loaded, e.g. a moved
-    ``data.root``.
+    ``data.root``. ``current``: the user's composed configuration, whose model and data are used
+    (see :func:`physmend.tracking.stored_config.read_stored_config`); without it the caller trusts
+    the store's ``model.builder``. A stored interpolation is refused either way.
 
     Raises:
         TrackingError: the run is not a finished trial with model artifacts, or they do not fit.
     """
     from physmend.problem import load_problem
+    from physmend.tracking.stored_config import read_stored_config
     from physmend.ude import ArtifactError, load_hybrid
 
     run_id = run_id or current_selection(store)
@@ -227,8 +231,7 @@ def load_trial(
             store.client.download_artifacts(run_id, "model", str(folder))
         except Exception as exc:  # noqa: BLE001 - any store/IO failure is "cannot load this run"
             raise TrackingError(f"could not download the artifacts of run {run_id!r}: {exc}") from None
-        cfg = OmegaConf.load(folder / "config.yaml")
-        assert isinstance(cfg, DictConfig)
+        cfg = read_stored_config(folder / "config.yaml", run_id, current)  # data: never resolved
         cfg = _apply_overrides(cfg, problem_cfg_overrides)
         problem = load_problem(cfg)
         try:

@@ -25,9 +25,9 @@ class HybridTrajectories:
     ``u (N, n_states)``, ``x (N, n_inputs)``, ``p (N, n_params)``, ``du (N, n_states)`` the
     hybrid's derivatives, ``corr (N, n_corrected)`` the network's corrections, ``z (N, n_features)``
     the normalised network inputs, ``exp (N,)`` batch index, ``t (N,)`` time (s);
-    ``added (N, n_corrected)``: everything the hybrid adds to the model *as written* in each
-    corrected equation — the correction plus what jointly estimated parameters changed there,
-    ``f(u, x, p_estimated) − f(u, x, p_declared)`` (state unit / s).
+    ``added (N, n_corrected)``: the correction plus what estimates that moved far from their
+    declared values (:func:`moved_far`) changed in each corrected equation,
+    ``f(u, x, p_estimated) − f(u, x, p_handed_back)`` (state unit / s).
     """
 
     u: torch.Tensor
@@ -55,12 +55,40 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
         corr = hybrid.corrections(states, x, p)
         z = (hybrid.features(states, x, p) - hybrid.mean) / hybrid.std
         idx = hybrid.corrected_idx
-        moved = (problem.compiled.bind(p)(states, x) - problem.compiled.bind(batch.params)(states, x))[..., idx]
+        kept = handed_back(hybrid, problem, batch.params)  # estimates that moved far go back to their declared values
+        moved = (problem.compiled.bind(p)(states, x) - problem.compiled.bind(kept)(states, x))[..., idx]
         added = corr + moved
     tt = batch.t[:, None].expand_as(mask)
     ee = torch.arange(batch.size)[None, :].expand_as(mask)
     return HybridTrajectories(states[mask], x[mask], pp[mask], du[mask], corr[mask], z[mask], ee[mask], tt[mask], batch,
                               added[mask])
+
+
+ABSORBED_SHARE = 0.25
+"""An estimate that moved more than this share of its declared range from its declared value is
+taken to have absorbed part of the missing physics (see :func:`handed_back`)."""
+
+
+def moved_far(hybrid: HybridModel, problem: Problem) -> list[str]:
+    """Jointly estimated parameters whose estimate moved over :data:`ABSORBED_SHARE` of their range."""
+    declared = {v.name: v for v in problem.model.parameters}
+    out = []
+    for name, value in hybrid.estimates().items():
+        var = declared[name]
+        lo, hi = var.bounds or (value, value)
+        if hi > lo and abs(value - float(var.value)) > ABSORBED_SHARE * (hi - lo):
+            out.append(name)
+    return out
+
+
+def handed_back(hybrid: HybridModel, problem: Problem, params: torch.Tensor) -> torch.Tensor:
+    """``params (B, n_params)`` with the estimates, except those that moved far (:func:`moved_far`),
+    which keep their declared values: what such an estimate changed is handed back to the corrections."""
+    p = hybrid.parameters_for(params).detach().clone()
+    for name in moved_far(hybrid, problem):
+        j = problem.compiled.parameter_names.index(name)
+        p[:, j] = params[:, j]
+    return p
 
 
 def rank_corrections(hybrid: HybridModel, traj: HybridTrajectories) -> list[tuple[str, float]]:
@@ -109,23 +137,21 @@ def rank_inputs(hybrid: HybridModel, jac: torch.Tensor, keep: list[str] | None =
 def equation_corrections(hybrid: HybridModel, problem: Problem, traj: HybridTrajectories, kept: list[str]) -> torch.Tensor:
     """``a_i · added_i`` of each kept equation ``a_i·der(x_i) = …`` along the samples: ``(N, k)``.
 
-    ``added`` is what the hybrid adds to the model as written: the network's correction plus what
-    jointly estimated parameters changed in that equation (:class:`HybridTrajectories`). A parameter
-    that drifted to absorb part of the missing physics thus hands it back: the formula is fitted to
-    the whole mismatch of the declared model, which is the model it will be attached to. In the
-    equation's own units (W for a heat balance), so a term that is the same physical flow in
-    experiments of different size (capacity) is the same function of its inputs; the coefficient
-    ``a_i`` is taken with the declared parameters.
+    ``added`` is the network's correction plus what jointly estimated parameters that moved far
+    from their declared values changed in that equation (:class:`HybridTrajectories`): a parameter
+    that drifted to absorb part of the missing physics hands it back, and the formula is fitted to
+    the mismatch of the model it will be attached to. In the equation's own units (W for a heat
+    balance), so a term that is the same physical flow in experiments of different size (capacity)
+    is the same function of its inputs.
     """
     from physmend.modeling.compile import lambdify_torch
 
     model = problem.model
     psyms = [v.symbol for v in model.parameters]
     cols = []
-    declared = traj.batch.params[traj.exp]  # (N, n_params): the experiment's parameters as declared
     values = traj.corr if traj.added is None else traj.added
     for name in kept:
-        coef = lambdify_torch(psyms, [model.der_coefficient[name]], "der coefficient")(*declared.unbind(-1))[0]
+        coef = lambdify_torch(psyms, [model.der_coefficient[name]], "der coefficient")(*traj.p.unbind(-1))[0]
         coef = torch.as_tensor(coef, dtype=traj.p.dtype).expand(traj.p.shape[0])
         cols.append(coef * values[:, hybrid.spec.corrected.index(name)])
     return torch.stack(cols, 1)

@@ -79,8 +79,11 @@ def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list
     if not wanted:
         return None
     window = max(1, int(round(float(window_s) / dt)))
-    # the declared parameters: the mismatch of the model as written, whatever estimates absorbed (E, n_params)
-    p = batch.params[forced.exp_index]
+    # the estimates, but those that moved far back at their declared values (they may have absorbed
+    # part of the missing physics, which then shows in the mismatch) (E, n_params)
+    from physmend.ude.analysis import handed_back
+
+    p = handed_back(hybrid, problem, batch.params[forced.exp_index])
     with torch.no_grad():
         physics = problem.compiled.bind(p)(forced.states, forced.inputs)  # (G, E, n)
     psyms = [v.symbol for v in problem.model.parameters]

@@ -79,3 +79,16 @@ def test_given_numbers_win_and_impossible_ones_are_clear_errors(tmp_path: Path) 
         resolve_times(compose([*AUTO, "train.segment_length=3600"]), problem)
     with pytest.raises(TimeSettingError, match=r"train.segment_samples must be a number of sampling intervals > 0, but got -3"):
         resolve_times(compose([*AUTO, "train.segment_samples=-3"]), problem)
+
+
+def test_a_plan_over_the_memory_budget_is_refused_in_one_line(tmp_path: Path) -> None:
+    from physmend.ude import train
+
+    problem = _problem(tmp_path, 0.01, 2000, tau=1.0)
+    cfg = compose([*AUTO, "train.memory_limit_gib=0.001", "train.epochs=1"])
+    with pytest.raises(TimeSettingError) as err:
+        train(cfg, problem)
+    message = str(err.value)
+    assert "\n" not in message
+    assert message.startswith("the training plan needs about ") and "more than train.memory_limit_gib=0.001" in message
+    assert "RK4 steps of 0.005" in message

@@ -94,7 +94,7 @@ def fastest_time_constant(problem: Problem, states: torch.Tensor | None = None, 
         train = [e for e in problem.experiments if e.role == "train"] or list(problem.experiments)
         batch = make_batch(train, model, problem.dtype)
         states = batch.u0
-        inputs = batch.inputs.at(batch.t[:1]).reshape(len(train), -1)
+        inputs = batch.inputs.at(batch.t[:1])[0]  # (B, m), m may be 0
         params = batch.params
     assert inputs is not None and params is not None
     n = states.shape[-1]
@@ -135,9 +135,9 @@ def time_scales(problem: Problem, reference: Any | None = None) -> TimeScales:
         b_train = [b for b, e in enumerate(problem.experiments) if e.role == "train"]
         T = reference.states.shape[0]
         rows = torch.unique(torch.linspace(0, T - 1, min(T, 16)).round().long())
-        st = reference.states[rows][:, b_train].reshape(-1, reference.states.shape[-1])
-        xs = reference.inputs[rows][:, b_train].reshape(-1, reference.inputs.shape[-1])
-        ps = reference.batch.params[b_train][None].expand(len(rows), -1, -1).reshape(-1, reference.batch.params.shape[-1])
+        st = reference.states[rows][:, b_train].flatten(0, 1)  # (P, n); flatten: m or k may be 0
+        xs = reference.inputs[rows][:, b_train].flatten(0, 1)
+        ps = reference.batch.params[b_train][None].expand(len(rows), -1, -1).flatten(0, 1)
         ok = torch.isfinite(st).all(-1)
         if bool(ok.any()):
             fastest = min(fastest, fastest_time_constant(problem, st[ok], xs[ok], ps[ok]))

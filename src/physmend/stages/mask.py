@@ -106,7 +106,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         if result is not None:
             log_training(run_, result)
         else:  # the source network; the kept outputs are recorded in the tag physmend.kept
-            from physmend.ude.train import artifacts_of
+            from physmend.ude.artifacts import artifacts_of
 
             log_artifacts(run_, artifacts_of(hybrid, {"val.rmse": full}))
         run_id = run_.run_id

@@ -102,7 +102,7 @@ def corrected_problem(problem_cfg: Any, corrections: list) -> Any:
 def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]:
     """Whole-trajectory simulation of the corrected model (adaptive solver) on the experiments of
     ``problem`` — every choice passes the training and validation experiments only
-    (:func:`physmend.ude.train.checkpoint_problem`); test experiments are simulated for the report.
+    (:func:`physmend.ude.metrics.checkpoint_problem`); test experiments are simulated for the report.
 
     Returns ``(reference, None)``, or ``(None, why)`` when it cannot be simulated: the solver
     fails on some experiment, or an output of a training or validation experiment is not finite.
@@ -151,7 +151,7 @@ def with_parameters(problem: Any, values: dict[str, float]) -> Any:
 
 
 def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True) -> dict[str, float]:
-    """Whole-trajectory metrics (``val.rmse`` …, see :func:`physmend.ude.train.metrics_of`) of the
+    """Whole-trajectory metrics (``val.rmse`` …, see :func:`physmend.ude.metrics.metrics_of`) of the
     corrected model from its simulation ``ref`` (:func:`simulate_corrected`)."""
     from physmend.ude.metrics import metrics_of
     from physmend.ude.outcome import TrainingDiverged

@@ -236,7 +236,7 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
             constants are parameters of ``problem.compiled``, starting from their values there.
         cfg: configuration with ``train.step``, ``train.segment_length``, ``train.continuity_weight``
             and ``train.warm_start`` (as training uses them).
-        ref: the whole-trajectory simulation of ``problem`` (:func:`physmend.ude.train.reference`).
+        ref: the whole-trajectory simulation of ``problem`` (:func:`physmend.ude.reference.reference`).
         names: parameter names of the constants; each stays on its sign, within a factor 20.
         max_iterations: at most this many accepted Levenberg–Marquardt steps.
         rtol: stop when a step lowers the loss by less than this fraction.

@@ -2,7 +2,7 @@
 
 All analyses run along whole-trajectory simulations of the hybrid on the *training* samples
 (train-role experiments before their validation split): choices made from them never look at
-validation or test data.
+validation or test data. Imports ``hybrid``, ``reference``.
 """
 
 from __future__ import annotations

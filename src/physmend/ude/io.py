@@ -1,4 +1,6 @@
-"""Rebuilding a trained hybrid model from its plain-file artifacts."""
+"""Rebuilding a trained hybrid model from its plain-file artifacts (written by
+:func:`physmend.ude.artifacts.artifacts_of`). Imports ``hybrid``.
+"""
 
 from __future__ import annotations
 

@@ -1,5 +1,6 @@
 """Whole-trajectory metrics: ``val.rmse``, ``train.rmse``, per-experiment RMSE (test experiments
-report only) and the checkpoint problem without test experiments. Imports ``reference``, ``outcome``.
+report only) and the checkpoint problem without test experiments. Imports ``hybrid``, ``outcome``,
+``reference``.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """The model as written, simulated on every experiment (the reference the network's inputs are
-normalised from), the solver options, and the training/validation sample masks. Imports ``simulate``.
+normalised from), the solver options, and the training/validation sample masks. Imports ``simulate``;
+no other module of ``physmend.ude``.
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """Multiple shooting: the plan of segments over the training records, fixed-step RK4 over all
-segments at once, chained segment starts, and the scales of the loss. Imports ``reference``.
+segments at once, chained segment starts, and the scales of the loss. Imports ``hybrid``,
+``reference`` (and ``timescale``, lazily).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """The hybrid's specification from ``cfg.ude``: corrected equations (definitions left out), network
-inputs (parameters under ``auto``), normalisation, jointly estimated parameters. Imports ``reference``.
+inputs (parameters under ``auto``), normalisation, jointly estimated parameters. Imports ``hybrid``,
+``reference``.
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """The stack: M hybrid models trained as one batched multiple-shooting solve — losses, the batched
 AdamW step with per-model clipping, the batched warm start, chained starts, checkpoint evaluations.
-Imports ``stack_net``, ``stack_plan``, ``train``, ``warmstart``.
+Imports ``hybrid``, ``stack_net``, ``stack_plan``, ``metrics``, ``outcome``, ``reference``, ``shooting``,
+``schedule``, ``warmstart`` (never ``train``: the single-model trainer and the stack are siblings).
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from physmend.ude.metrics import _evaluate, checkpoint_problem, metrics_of
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.reference import Reference, _train_mask, simulate_with
 from physmend.ude.shooting import Shooting, _equation_scale, _output_spread, chained_starts, rk4_segments
-from physmend.ude.train import _chain, lr_factor
+from physmend.ude.schedule import _chain
 from physmend.ude.warmstart import Forced, fit_models, recall_derived, remember_derived, warm_key
 
 
@@ -43,21 +44,6 @@ class _Member:
     outcome: BaseException | None = None  # set when the model stops with an error
     done: bool = False
     warm_key: str | None = None  # its stored warm start (:func:`physmend.ude.warmstart.warm_key`), if batched
-
-
-def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
-    """The learning rate of every epoch, from the optimiser/scheduler pair train() uses."""
-    tc = cfg.train
-    epochs = int(tc.epochs)
-    dummy = torch.nn.Parameter(torch.zeros(1))
-    opt = torch.optim.AdamW([dummy], lr=float(tc.lr))
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor(tc, epochs, warm=warm))
-    lrs = []
-    for _ in range(epochs):
-        lrs.append(float(opt.param_groups[0]["lr"]))
-        opt.step()  # no gradient: nothing moves; keeps the scheduler's step-order check quiet
-        sched.step()
-    return lrs
 
 
 class _Stack:

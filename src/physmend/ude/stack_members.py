@@ -1,5 +1,6 @@
 """Each member of a stack prepared (its hybrid, optimiser settings, segment starts) and the shared
-batched warm start. Imports ``stack``, ``stack_plan``.
+batched warm start. Imports ``hybrid``, ``stack``, ``reference``, ``shooting``, ``spec``,
+``schedule``, ``warmstart``.
 """
 
 from __future__ import annotations
@@ -9,11 +10,11 @@ import torch
 
 from physmend.problem import Problem
 from physmend.ude.hybrid import HybridModel, UDEConfigError
-from physmend.ude.stack import _Member, _Stack, _lr_schedule
+from physmend.ude.stack import _Member, _Stack
 from physmend.ude.reference import Reference
+from physmend.ude.schedule import _chain, _lr_schedule
 from physmend.ude.shooting import Shooting, _initial_segments, chained_starts
 from physmend.ude.spec import build_spec
-from physmend.ude.train import _chain
 from physmend.ude.warmstart import Forced, forced_trajectories, recall, remember, segment_starts, warm_key, warm_start
 
 

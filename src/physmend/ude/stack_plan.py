@@ -1,5 +1,5 @@
 """The reference simulation and the multiple-shooting plan of a stack, computed once per problem and
-settings in a process, and the experiments grouped by their time grid. Imports ``train`` (reference, shooting).
+settings in a process, and the experiments grouped by their time grid. Imports ``reference``, ``shooting``.
 """
 
 from __future__ import annotations

@@ -31,6 +31,13 @@ and the adaptive whole-trajectory solver picks one step size for all rows of a b
 evaluation, so checkpoint metrics agree with a solo evaluation to the solver tolerance. The final
 metrics of each model come from its own solo evaluation, exactly as ``train()`` computes them, or
 (``final_eval="batched"``, as sweeps use it) from one batched solve of all finished models.
+
+Here: the shared settings (:data:`SHARED_KEYS`, :func:`stack_key`), :func:`train_stack`, the shared
+epoch loop and the final evaluations. The pieces: ``stack_net`` (padded networks), ``stack_plan``
+(reference and plan, once per problem), ``stack`` (the batched model, its losses and step),
+``stack_members`` (each model prepared, the shared warm start). Imports those and ``artifacts``,
+``hybrid``, ``metrics``, ``outcome``, ``reference``, ``shooting``, ``warmstart`` (and ``timescale``,
+lazily); never ``train``: the two trainers are siblings on the same pieces.
 """
 
 from __future__ import annotations
@@ -45,6 +52,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import make_batch
+from physmend.ude.artifacts import artifacts_of, fit_figures
 from physmend.ude.hybrid import UDEConfigError
 from physmend.ude.stack import _Member, _Stack
 from physmend.ude.stack_members import _check_same_shape, _prepare, _shared_warm_start, _warm_fit, _warm_settings
@@ -53,7 +61,6 @@ from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.reference import Reference, _sim_opts
 from physmend.ude.shooting import Shooting
-from physmend.ude.train import artifacts_of, fit_figures
 from physmend.ude.warmstart import Forced, recall_derived, remember_derived
 
 

@@ -7,6 +7,10 @@ whole trajectories (single shooting, adaptive stiff solver) — never from the s
 
 Validation: validation experiments if the data config has any, otherwise the carved last part of
 each training record (``split_time``); training never sees those samples.
+
+Only :func:`train` lives here; its pieces are modules of their own, which this one imports:
+``reference``, ``spec``, ``shooting``, ``warmstart``, ``schedule``, ``metrics``, ``outcome``,
+``artifacts`` (and ``timescale``); within ``physmend.ude`` only the package's face imports it.
 """
 
 from __future__ import annotations
@@ -14,46 +18,26 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 import copy
-import io
-import json
-import math
 
 import torch
 
 from physmend.problem import Problem
-from physmend.simulate import Batch
-from physmend.ude.hybrid import HybridModel, UDEConfigError
-# names below that train() does not use stay importable from here (older import paths): the
-# training pieces live in reference, spec, shooting, metrics and outcome
-from physmend.ude.metrics import _evaluate, checkpoint_problem, evaluate, metrics_of
+from physmend.ude.artifacts import artifacts_of, fit_figures
+from physmend.ude.hybrid import HybridModel
+from physmend.ude.metrics import _evaluate, checkpoint_problem
 from physmend.ude.outcome import TrainResult, TrainingDiverged
-from physmend.ude.reference import Reference, _sim_opts, _train_mask, reference, simulate_with
-from physmend.ude.shooting import Shooting, _equation_scale, _initial_segments, _output_spread, chained_starts, plan_shooting, rk4_segments
-from physmend.ude.spec import build_spec, informative_parameters
+from physmend.ude.reference import _sim_opts, _train_mask, reference
+from physmend.ude.schedule import _chain, lr_factor
+from physmend.ude.shooting import _equation_scale, _initial_segments, _output_spread, chained_starts, plan_shooting, rk4_segments
+from physmend.ude.spec import build_spec
 from physmend.ude.warmstart import segment_starts, warm_start
 
-
-def _chain(tc: Any) -> bool:
-    """``train.segment_starts`` after a warm start: True for ``chained``, False for ``forced``."""
-    mode = str(tc.get("segment_starts", "chained"))
-    if mode not in ("chained", "forced"):
-        raise UDEConfigError(f"train.segment_starts must be 'chained' or 'forced', but got {mode!r}")
-    return mode == "chained"
-
-
-def lr_factor(tc: Any, epochs: int, *, warm: bool) -> Callable[[int], float]:
-    """Learning-rate multiplier per epoch: ``train.schedule`` (cosine | none), after a warm start
-    ramped up linearly over ``train.warmup_epochs`` so the first steps do not undo it."""
-    schedule = str(tc.schedule)
-    if schedule not in ("cosine", "none"):
-        raise UDEConfigError(f"train.schedule must be 'cosine' or 'none', but got {schedule!r}")
-    ramp = max(0, int(tc.get("warmup_epochs", 0))) if warm else 0
-
-    def factor(epoch: int) -> float:
-        f = 0.5 * (1 + math.cos(math.pi * min(epoch, epochs) / max(epochs, 1))) if schedule == "cosine" else 1.0
-        return f * min(1.0, (epoch + 1) / ramp) if ramp else f
-
-    return factor
+# not used here, still importable from here (the import paths from before the split)
+from physmend.ude.hybrid import UDEConfigError  # noqa: F401
+from physmend.ude.metrics import evaluate, metrics_of  # noqa: F401
+from physmend.ude.reference import Reference, simulate_with  # noqa: F401
+from physmend.ude.shooting import Shooting  # noqa: F401
+from physmend.ude.spec import informative_parameters  # noqa: F401
 
 
 def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]], None] | None = None) -> TrainResult:
@@ -170,26 +154,3 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         hybrid=hybrid,
     )
 
-
-def artifacts_of(hybrid: HybridModel, metrics: dict[str, float]) -> dict[str, str | bytes]:
-    """Plain files: ``model/weights.pt`` (a state_dict of tensors) and ``model/hybrid.json``."""
-    buf = io.BytesIO()
-    torch.save({k: v.detach().cpu() for k, v in hybrid.state_dict().items()}, buf)
-    meta = {"spec": hybrid.spec.to_dict(), "estimates": hybrid.estimates(), "metrics": metrics, "format": 1}
-    return {"model/weights.pt": buf.getvalue(), "model/hybrid.json": json.dumps(meta, indent=2)}
-
-
-def fit_figures(problem: Problem, batch: Batch, y: torch.Tensor, ref: Reference) -> dict[str, Any]:
-    """Measured vs model-as-written vs hybrid outputs, one figure per experiment."""
-    from physmend.explain.plots import fit_figure
-
-    t = batch.t.numpy() / 3600
-    y_ref = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None]).numpy()
-    figs: dict[str, Any] = {}
-    for b, e in enumerate(problem.experiments):
-        curves = [("model as written", y_ref[:, b], {"ls": "--", "color": "C3", "lw": 1}),
-                  ("hybrid (UDE)", y[:, b].numpy(), {"color": "C0", "lw": 1.2})]
-        split = float(e.split_time) / 3600 if e.split_time is not None else None
-        figs[f"plots/fit_{e.id}.png"] = fit_figure(t, batch.obs[:, b].numpy(), curves, problem.model.output_names,
-                                                   problem.model.units, f"experiment {e.id} ({e.role})", split)
-    return figs

@@ -1,0 +1,53 @@
+"""The optimiser's schedule: the learning-rate multiplier per epoch (``train.schedule``, the
+warm-up ramp after a warm start), the learning rate of every epoch for a stack member, and how
+segment starts follow a warm start (``train.segment_starts``). Imports ``hybrid`` only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+import math
+
+from omegaconf import DictConfig
+import torch
+
+from physmend.ude.hybrid import UDEConfigError
+
+
+def _chain(tc: Any) -> bool:
+    """``train.segment_starts`` after a warm start: True for ``chained``, False for ``forced``."""
+    mode = str(tc.get("segment_starts", "chained"))
+    if mode not in ("chained", "forced"):
+        raise UDEConfigError(f"train.segment_starts must be 'chained' or 'forced', but got {mode!r}")
+    return mode == "chained"
+
+
+def lr_factor(tc: Any, epochs: int, *, warm: bool) -> Callable[[int], float]:
+    """Learning-rate multiplier per epoch: ``train.schedule`` (cosine | none), after a warm start
+    ramped up linearly over ``train.warmup_epochs`` so the first steps do not undo it."""
+    schedule = str(tc.schedule)
+    if schedule not in ("cosine", "none"):
+        raise UDEConfigError(f"train.schedule must be 'cosine' or 'none', but got {schedule!r}")
+    ramp = max(0, int(tc.get("warmup_epochs", 0))) if warm else 0
+
+    def factor(epoch: int) -> float:
+        f = 0.5 * (1 + math.cos(math.pi * min(epoch, epochs) / max(epochs, 1))) if schedule == "cosine" else 1.0
+        return f * min(1.0, (epoch + 1) / ramp) if ramp else f
+
+    return factor
+
+
+def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
+    """The learning rate of every epoch, from the optimiser/scheduler pair train() uses."""
+    tc = cfg.train
+    epochs = int(tc.epochs)
+    dummy = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.AdamW([dummy], lr=float(tc.lr))
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor(tc, epochs, warm=warm))
+    lrs = []
+    for _ in range(epochs):
+        lrs.append(float(opt.param_groups[0]["lr"]))
+        opt.step()  # no gradient: nothing moves; keeps the scheduler's step-order check quiet
+        sched.step()
+    return lrs

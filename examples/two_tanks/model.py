@@ -11,10 +11,11 @@ from physmend.modeling import Model
 
 def build() -> Model:
     m = Model("two_tanks", description="two tanks in cascade, Torricelli outlets")
+    # areas and the orifice are known from the drawings; the valve is set per experiment (data config)
     h1 = m.state("tank1.h", start=0.3, unit="m", description="upper tank level (not measured)")
     h2 = m.state("tank2.h", start=0.3, unit="m", description="lower tank level")
     A1 = m.parameter("tank1.A", 0.5, unit="m2")
-    A2 = m.parameter("tank2.A", 0.5, unit="m2")
+    A2 = m.parameter("tank2.A", 0.25, unit="m2")
     k1 = m.parameter("orifice.k", 0.004, unit="m2.5/s")
     k2 = m.parameter("valve.k", 0.004, unit="m2.5/s", description="valve setting")
     q_in = m.input("pump.q", unit="m3/s")

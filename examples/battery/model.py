@@ -16,7 +16,7 @@ def build() -> Model:
     Q = m.parameter("cell.Q", 9000.0, unit="A.s", description="capacity")
     R0 = m.parameter("cell.R0", 0.03, unit="Ohm")
     R1 = m.parameter("rc.R", 0.02, unit="Ohm")
-    C1 = m.parameter("rc.C", 2000.0, unit="F")
+    C1 = m.parameter("rc.C", 10000.0, unit="F")
     i = m.input("load.i", unit="A", description="discharge current (positive out of the cell)")
     ocv = m.variable("cell.ocv", unit="V", description="open-circuit voltage")
     V = m.variable("cell.V", unit="V", description="terminal voltage")

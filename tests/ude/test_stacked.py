@@ -247,7 +247,7 @@ def test_a_stopped_or_diverging_model_leaves_the_others_alone(short_project: Pat
     # within solver tolerance of a solo evaluation
     assert ok.val_rmse == pytest.approx(min(r["val.rmse"] for r in ok.history), rel=1e-4)
     own = evaluate(ok.hybrid, problem, cfgs[0])
-    assert set(own) == set(ok.metrics) - {"estimate.damper.c"}
+    assert set(own) == set(ok.metrics) - {"estimate.damper.c", "checkpoints.failed"}
     for key, value in own.items():
         assert ok.metrics[key] == pytest.approx(value, rel=1e-4), key
     assert {"train.rmse", "test.rmse", "estimate.damper.c"} <= set(ok.metrics) and ok.figures == {}

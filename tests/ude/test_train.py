@@ -100,6 +100,42 @@ def test_chained_segment_starts_leave_no_gaps(user_project: Path, monkeypatch: p
 
 def test_divergence_is_reported_not_hidden(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(user_project)
-    cfg = _cfg(user_project, "train.lr=1.0e6", "train.epochs=20", "train.eval_every=5", "ude.output_scale=100.0")
+    bad = ["train.lr=1.0e6", "train.epochs=20", "train.eval_every=5", "ude.output_scale=100.0"]
+    cfg = _cfg(user_project, *bad, "train.warm_start=none")
     with pytest.raises(TrainingDiverged, match=r"non-finite|failed"):
         train(cfg, load_problem(cfg))
+    # a failed checkpoint is dropped, not the model: the warm start stays the best, and the count says so
+    cfg = _cfg(user_project, *bad)
+    result = train(cfg, load_problem(cfg))
+    failed = [r["epoch"] for r in result.history if r["val.rmse"] == float("inf")]
+    assert failed and result.metrics["checkpoints.failed"] == len(failed)
+    assert result.val_rmse == pytest.approx(result.history[0]["val.rmse"], rel=1e-6)  # test experiments solved apart
+
+
+def test_a_test_experiment_that_fails_to_simulate_does_not_fail_the_model(user_project: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Held-out data decide nothing: a test recording whose input drives the hybrid off the finite
+    range gives NaN test metrics, while the model (chosen on training and validation) survives."""
+    import pandas as pd
+
+    monkeypatch.chdir(user_project)
+    cfg = _cfg(user_project, "train.epochs=20", "train.eval_every=10")
+    plain = train(cfg, load_problem(cfg))
+    test_file = user_project / "recordings" / "run3.csv"
+    frame = pd.read_csv(test_file)
+    frame["motor.F"] = 1e308  # F/m overflows: the solve of run3 fails
+    frame.to_csv(test_file, index=False)
+    result = train(cfg, load_problem(cfg))
+    assert result.val_rmse == pytest.approx(plain.val_rmse, rel=1e-4)  # to solver tolerance (the reference is one batched solve)
+    assert result.metrics["test.failed"] == 1.0
+    assert result.metrics["test.rmse"] != result.metrics["test.rmse"]  # NaN
+    assert plain.metrics["test.rmse"] == plain.metrics["test.rmse"]
+    assert plain.metrics["test.failed"] == 0.0
+    frame["motor.F"] = 0.0
+    frame.to_csv(test_file, index=False)
+    data_cfg = user_project / "my_conf" / "data" / "oscillator.yaml"
+    data_cfg.write_text(data_cfg.read_text().replace("cart.x0: 0.2", "cart.x0: 1.0e308"))  # the solve itself fails
+    again = _cfg(user_project, "train.epochs=20", "train.eval_every=10")
+    failing = train(again, load_problem(again))
+    assert failing.val_rmse == pytest.approx(plain.val_rmse, rel=1e-4)
+    assert failing.metrics["test.failed"] == 1.0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,9 +95,9 @@ def log_training(run_: StageRun, result: Any) -> None:
     """Log a :class:`physmend.ude.TrainResult`: metrics, history, model files, figures."""
     import matplotlib.pyplot as plt
 
-    for row in result.history:
-        run_.log_metrics({k: v for k, v in row.items() if k != "epoch"}, step=int(row["epoch"]))
-    run_.log_metrics({k: v for k, v in result.metrics.items() if v == v})
+    for row in result.history:  # a failed checkpoint (inf) is in history.json and checkpoints.failed
+        run_.log_metrics({k: v for k, v in row.items() if k != "epoch" and math.isfinite(v)}, step=int(row["epoch"]))
+    run_.log_metrics({k: v for k, v in result.metrics.items() if math.isfinite(v)})
     log_artifacts(run_, result.artifacts)
     for rel, fig in result.figures.items():
         run_.log_figure(fig, rel)

@@ -15,7 +15,7 @@ from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.reference import _sim_opts, _train_mask, _val_mask, simulate_with
+from physmend.ude.reference import _sim_opts, _train_mask, _val_mask, held_out_apart, simulate_with
 
 
 def _pooled(err: torch.Tensor, mask: torch.Tensor) -> float:
@@ -45,9 +45,16 @@ def metrics_of(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, flo
         scaled = err
     tm, vm = _train_mask(problem, batch), _val_mask(problem, batch)
     metrics = {"val.rmse": _pooled(scaled, vm), "train.rmse": _pooled(scaled, tm)}
-    test = torch.tensor([e.role == "test" for e in problem.experiments])[None, :].expand_as(tm)
+    is_test = torch.tensor([e.role == "test" for e in problem.experiments])
+    test = is_test[None, :].expand_as(tm)
     if bool(test.any()):
-        metrics["test.rmse"] = _pooled(scaled, test)
+        # a test experiment whose outputs left the finite range where measured has no RMSE: counted
+        # in test.failed, and test.rmse is NaN rather than the RMSE of the others
+        measured = torch.isfinite(batch.obs)
+        sq = torch.where(measured, scaled, 0.0).pow(2).sum(dim=(0, 2))  # (B,)
+        off = (~torch.isfinite(sq) | (~torch.isfinite(y) & measured).any(-1).any(0)) & is_test
+        metrics["test.failed"] = float(off.sum())
+        metrics["test.rmse"] = math.nan if bool(off.any()) else _pooled(scaled, test)
     for b, e in enumerate(problem.experiments):
         for j, out in enumerate(problem.model.output_names):
             col = err[:, b, j]
@@ -67,12 +74,22 @@ def checkpoint_problem(problem: Problem) -> Problem:
 
 
 def _evaluate(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor, Batch]:
+    """Metrics, outputs ``(T, B, k)`` and batch of ``hybrid`` on every experiment of ``problem``.
+
+    The outcome is judged on training and validation experiments only
+    (:func:`~physmend.ude.reference.held_out_apart`): a test experiment whose solve fails gets NaN
+    outputs, counted in ``test.failed`` (``test.rmse`` NaN) — it never decides whether a model survives.
+    """
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+
+    def solve(sub: Batch) -> torch.Tensor:
+        p = hybrid.parameters_for(sub.params)
+        states = simulate_with(hybrid.rhs(p), sub, sub.u0, sim)
+        return problem.compiled.outputs(states, sub.inputs.at(sub.t), p[None])
+
     with torch.no_grad():
-        p = hybrid.parameters_for(batch.params)
         try:
-            states = simulate_with(hybrid.rhs(p), batch, batch.u0, sim)
+            y = held_out_apart(problem, batch, solve)
         except SimulationError as exc:
             raise TrainingDiverged(f"whole-trajectory simulation of the hybrid failed: {exc}") from exc
-        y = problem.compiled.outputs(states, batch.inputs.at(batch.t), p[None])
     return metrics_of(problem, batch, y), y, batch

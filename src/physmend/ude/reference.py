@@ -8,11 +8,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+import math
 
 import torch
 
 from physmend.problem import Problem
-from physmend.simulate import Batch, make_batch, odeint
+from physmend.simulate import Batch, SimulationError, make_batch, odeint
 from physmend.simulate.core import OWN_METHODS
 
 
@@ -65,13 +66,49 @@ def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], bat
 def reference(problem: Problem, cfg: Any) -> Reference:
     model = problem.compiled
     batch = make_batch(problem.experiments, model, problem.dtype)
+
+    def solve(sub: Batch) -> torch.Tensor:
+        rhs = model.bind(sub.params)
+        return simulate_with(rhs, sub, sub.u0, _sim_opts(cfg), model.jacobian(sub.params))
+
     with torch.no_grad():
+        states = held_out_apart(problem, batch, solve)
         rhs = model.bind(batch.params)
-        states = simulate_with(rhs, batch, batch.u0, _sim_opts(cfg), model.jacobian(batch.params))
         x = batch.inputs.at(batch.t)
         derivs = rhs(states, x)
         observed = model.observed(states, x, batch.params[None])
     return Reference(batch, states, derivs, x, observed)
+
+
+def held_out_apart(problem: Problem, batch: Batch, solve: Callable[[Batch], torch.Tensor]) -> torch.Tensor:
+    """``solve(batch)`` — a whole-trajectory quantity ``(T, B, ...)`` — on every experiment, such that
+    test experiments decide nothing: when the one solve fails, the training and validation
+    experiments are solved together (their failure is raised) and each test experiment alone; a
+    test experiment whose solve fails is NaN throughout.
+    """
+    try:
+        return solve(batch)
+    except SimulationError:
+        test = [i for i, e in enumerate(problem.experiments) if e.role == "test"]
+        if not test:
+            raise
+    kept = [i for i in range(batch.size) if i not in test]
+    out: torch.Tensor | None = None
+    for group in [kept] + [[i] for i in test]:
+        if not group:
+            continue
+        sub = make_batch([problem.experiments[i] for i in group], problem.compiled, problem.dtype)
+        try:
+            part = solve(sub)
+        except SimulationError:
+            if group is kept:
+                raise
+            continue  # NaN: the report counts it (test.failed)
+        if out is None:
+            out = torch.full((batch.t.shape[0], batch.size, *part.shape[2:]), math.nan, dtype=part.dtype)
+        out[torch.searchsorted(batch.t, sub.t)[:, None], torch.tensor(group)[None, :]] = part
+    assert out is not None  # the kept group either solved or raised
+    return out
 
 
 def _train_mask(problem: Problem, batch: Batch) -> torch.Tensor:

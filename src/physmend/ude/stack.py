@@ -42,6 +42,7 @@ class _Member:
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best: int = 0
     outcome: BaseException | None = None  # set when the model stops with an error
+    failed: TrainingDiverged | None = None  # the last checkpoint whose whole trajectory failed (dropped)
     done: bool = False
     warm_key: str | None = None  # its stored warm start (:func:`physmend.ude.warmstart.warm_key`), if batched
 

@@ -46,6 +46,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 import copy
 import json
+import math
 
 from omegaconf import DictConfig, OmegaConf
 import torch
@@ -217,6 +218,16 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
         for pos in positions:
             outcome = outcomes[pos]
             mem = stack.members[pos]
+            if isinstance(outcome, TrainingDiverged):  # this checkpoint's whole trajectory failed: not a
+                # candidate, but training goes on (the next checkpoint may be fine); patience counts it
+                mem.failed = outcome
+                mem.history.append({"epoch": float(epoch), "loss": float("nan") if loss is None else float(loss[pos]),
+                                    "fit_loss": float("nan") if fit is None else float(fit[pos]),
+                                    "val.rmse": math.inf, "train.rmse": math.inf})
+                mem.since_best += 1
+                if patience > 0 and mem.since_best >= patience:
+                    mem.done = True
+                continue
             if isinstance(outcome, BaseException):
                 mem.outcome, mem.done = outcome, True
                 continue
@@ -277,6 +288,9 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
             if live:
                 checkpoint(live, epoch, loss, fit)
         drop_done()
+    for mem in members:  # every checkpoint failed: the last failure is the outcome
+        if mem.outcome is None and mem.best is None:
+            mem.outcome = mem.failed or TrainingDiverged("no checkpoint was evaluated (train.epochs < 1?)")
     return members
 
 
@@ -310,6 +324,7 @@ def _result(mem: _Member, problem: Problem, ref: Reference, sim: dict[str, Any],
         batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
     for name, value in hybrid.estimates().items():
         metrics[f"estimate.{name}"] = value
+    metrics["checkpoints.failed"] = float(sum(math.isinf(r["val.rmse"]) for r in mem.history))
     return TrainResult(
         val_rmse=metrics["val.rmse"],
         metrics=metrics,

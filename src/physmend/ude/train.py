@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 import copy
+import math
 
 import torch
 
@@ -90,14 +91,22 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     history: list[dict[str, float]] = []
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best = 0
+    failed: TrainingDiverged | None = None  # the last checkpoint whose whole trajectory failed
     has_next = plan.next_of >= 0
     outputs = problem.compiled.outputs
     checked = checkpoint_problem(problem)
 
     def checkpoint(epoch: int, loss: float, fit: float) -> bool:
         """Evaluate whole trajectories, keep the best state; True when patience has run out."""
-        nonlocal best, since_best
-        metrics, _, _ = _evaluate(hybrid, checked, sim)
+        nonlocal best, since_best, failed
+        try:
+            metrics, _, _ = _evaluate(hybrid, checked, sim)
+        except TrainingDiverged as exc:  # not a candidate; training goes on, patience counts it
+            failed = exc
+            history.append({"epoch": float(epoch), "loss": loss, "fit_loss": fit, "val.rmse": math.inf,
+                            "train.rmse": math.inf})
+            since_best += 1
+            return patience > 0 and since_best >= patience
         row = {"epoch": float(epoch), "loss": loss, "fit_loss": fit,
                **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
         history.append(row)
@@ -140,11 +149,13 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         sched.step()
         if (epoch % eval_every == 0 or epoch == epochs) and checkpoint(epoch, float(loss.detach()), float(fit.detach())):
             break
-    assert best is not None
+    if best is None:  # every checkpoint failed
+        raise failed or TrainingDiverged("no checkpoint was evaluated")
     hybrid.load_state_dict(best[1])
     metrics, y, batch = _evaluate(hybrid, problem, sim)
     for name, value in hybrid.estimates().items():
         metrics[f"estimate.{name}"] = value
+    metrics["checkpoints.failed"] = float(sum(math.isinf(r["val.rmse"]) for r in history))
     return TrainResult(
         val_rmse=metrics["val.rmse"],
         metrics=metrics,

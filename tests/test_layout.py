@@ -13,7 +13,8 @@ PACKAGE = SRC / "physmend"
 MAX_LINES = 500
 # Layers, lowest first: a module may import from its own layer's package and from lower layers.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("config",),
+    ("redact",),
+    ("config", "config_check"),
     ("modeling", "library"),
     ("data",),
     ("problem", "simulate"),

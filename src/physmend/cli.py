@@ -100,7 +100,9 @@ def _ui(args: argparse.Namespace) -> int:
         uri = f"sqlite:///{db}"
     cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", args.host,
            "--port", str(args.port), "--workers", "1"]
-    print("running:", " ".join(cmd))
+    from physmend.redact import redact
+
+    print("running:", redact(" ".join(cmd)))
     return subprocess.call(cmd)
 
 
@@ -131,7 +133,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "config":
             from physmend.config import to_yaml
 
-            print(to_yaml(cfg))
+            from physmend.redact import redact
+
+            print(redact(to_yaml(cfg)))
             return 0
         if args.command == "runs":
             from physmend.stages.select import runs
@@ -153,7 +157,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             stage(cfg, getattr(args, "run_id", None))
         return 0
     except USER_ERRORS as exc:
-        print(f"physmend {args.command}: error: {exc}", file=sys.stderr)
+        from physmend.redact import redact
+
+        print(redact(f"physmend {args.command}: error: {exc}"), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"physmend {args.command}: interrupted", file=sys.stderr)

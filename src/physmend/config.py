@@ -124,6 +124,12 @@ def compose(
     choices = {str(k): str(v) for k, v in OmegaConf.to_container(cfg.hydra.runtime.choices).items()}
     del cfg["hydra"]
     _substitute_project(cfg, choices, [*search, config_dir()])
+    from physmend.config_check import SettingError, check_settings
+
+    try:
+        check_settings(cfg, choices, config_dir())
+    except SettingError as exc:
+        raise ConfigError(str(exc)) from None
     OmegaConf.set_struct(cfg, True)
     return cfg
 

@@ -203,7 +203,9 @@ def test_checkpoints_of_records_on_different_clocks_are_solved_apart(short_proje
     checked = checkpoint_problem(problem)
     assert [e.id for e in checked.experiments] == ["run1", "run2"]
     assert [exps for exps, _, _ in stack.parts] == [[0], [1]]
-    sim = _sim_opts(cfgs[0])
+    # tight tolerances: the union-of-times solve and the separate ones step differently, and at
+    # the default rtol their answers may differ by more than the rel 1e-4 compared here
+    sim = {**_sim_opts(cfgs[0]), "rtol": 1e-8, "atol": 1e-10}
     checkpoints = stack.evaluate([0, 1], sim)
     for i, mem in enumerate(stack.members):
         stack.write_back(i)
@@ -239,7 +241,10 @@ def test_a_stopped_or_diverging_model_leaves_the_others_alone(short_project: Pat
     results = train_stack(cfgs, problem, report=report, final_eval="batched", figures=False)
     assert isinstance(results[1], Pruned)
     assert isinstance(results[2], TrainingDiverged)
-    assert "training loss became non-finite at epoch 1" in str(results[2])
+    # the training solve keeps states in a box about the data, so the overflow shows either in the
+    # loss or when the whole trajectory is simulated; either way that model alone has diverged
+    assert ("training loss became non-finite at epoch 1" in str(results[2])
+            or "whole-trajectory simulation of the hybrid failed" in str(results[2])), str(results[2])
     ok = results[0]
     assert isinstance(ok, TrainResult)
     assert [r["epoch"] for r in ok.history] == [2.0, 4.0, 6.0]

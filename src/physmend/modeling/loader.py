@@ -32,7 +32,7 @@ def _import_builder(ref: str) -> Any:
         try:
             spec.loader.exec_module(module)
         except Exception as exc:
-            raise ModelError(f"model.builder: importing {str(path)!r} failed: {exc!r}") from exc
+            raise ModelError(f"model.builder: importing {str(path)!r} failed: {where_in_user_code(exc)}") from None
     else:
         try:
             module = importlib.import_module(where)
@@ -42,6 +42,24 @@ def _import_builder(ref: str) -> Any:
         return getattr(module, func)
     except AttributeError:
         raise ModelError(f"model.builder: {where!r} has no function {func!r}") from None
+
+
+def where_in_user_code(exc: BaseException, *, with_error: bool = True) -> str:
+    """``"ValueError at /path/model.py, line 12 (in build): message"``: the error and the innermost
+    line of the user's code (outside physmend and installed packages) it passed through."""
+    import traceback
+
+    if isinstance(exc, SyntaxError) and exc.filename:
+        where = f"{exc.filename}, line {exc.lineno}"
+        return f"{type(exc).__name__} at {where}: {exc.msg}" if with_error else f"at {where}"
+    ours = Path(__file__).resolve().parents[1]
+    frames = [f for f in traceback.extract_tb(exc.__traceback__)
+              if not Path(f.filename).resolve().is_relative_to(ours) and "site-packages" not in f.filename
+              and not f.filename.startswith("<frozen")]
+    where = f"at {frames[-1].filename}, line {frames[-1].lineno} (in {frames[-1].name})" if frames else ""
+    if not with_error:
+        return where
+    return f"{type(exc).__name__} {where}: {exc}".replace("  ", " ")
 
 
 def load_model(builder: str, options: Mapping[str, Any] | None = None, corrections: str | None = None) -> Model:
@@ -54,7 +72,13 @@ def load_model(builder: str, options: Mapping[str, Any] | None = None, correctio
     try:
         model = fn(**dict(options or {}))
     except TypeError as exc:
-        raise ModelError(f"model.builder {builder!r} rejected model.options {dict(options or {})}: {exc}") from exc
+        if exc.__traceback__ is not None and exc.__traceback__.tb_next is None:  # the call itself: the options
+            raise ModelError(f"model.builder {builder!r} rejected model.options {dict(options or {})}: {exc}") from None
+        raise ModelError(f"model.builder {builder!r} failed: {where_in_user_code(exc)}") from None
+    except ModelError as exc:  # physmend's modeling API refused something the builder asked for
+        raise ModelError(f"model.builder {builder!r}: {exc} ({where_in_user_code(exc, with_error=False)})") from None
+    except Exception as exc:  # noqa: BLE001 - the user's own code failed: their error, their file and line
+        raise ModelError(f"model.builder {builder!r} failed: {where_in_user_code(exc)}") from None
     if not isinstance(model, Model):
         raise ModelError(
             f"model.builder {builder!r} must return a physmend.modeling.Model, but returned {type(model).__name__}"

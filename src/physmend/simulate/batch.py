@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -25,6 +25,8 @@ class Batch:
         params: ``(B, n_params)`` parameter values.
         u0: ``(B, n_states)`` initial states.
         split_time: ``(B,)`` time from which samples are validation (inf: none).
+        initial_ranges: per batch element, state name -> ``(low, high)`` of an initial value declared
+            unknown (its entry of ``u0`` is mid-range until :mod:`physmend.simulate.initial` estimates it).
     """
 
     ids: list[str]
@@ -34,10 +36,19 @@ class Batch:
     params: torch.Tensor
     u0: torch.Tensor
     split_time: torch.Tensor
+    initial_ranges: list[dict[str, tuple[float, float]]] = field(default_factory=list)
 
     @property
     def size(self) -> int:
         return len(self.ids)
+
+    def take(self, rows: Sequence[int] | torch.Tensor, ids: list[str] | None = None) -> "Batch":
+        """The batch elements ``rows`` (a subset or a repetition), on the same time axis."""
+        idx = torch.as_tensor(rows, dtype=torch.long)
+        ranges = [self.initial_ranges[i] for i in idx.tolist()] if self.initial_ranges else []
+        return replace(self, ids=ids if ids is not None else [self.ids[i] for i in idx.tolist()],
+                       obs=self.obs[:, idx], inputs=self.inputs.select(idx), params=self.params[idx],
+                       u0=self.u0[idx], split_time=self.split_time[idx], initial_ranges=ranges)
 
 
 def make_batch(experiments: Sequence, model: CompiledModel, dtype: torch.dtype = torch.float64) -> Batch:
@@ -70,6 +81,7 @@ def make_batch(experiments: Sequence, model: CompiledModel, dtype: torch.dtype =
         params=params,
         u0=u0,
         split_time=split,
+        initial_ranges=[dict(getattr(e, "initial_ranges", None) or {}) for e in experiments],
     )
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from typing import TYPE_CHECKING, Any
 
+from physmend.redact import redact
 from physmend.tracking import STAGE_TAG, SOURCE_TAG, TrackingError, get_run, open_store
 from physmend.tracking import selection as sel
 
@@ -88,7 +89,7 @@ def collect(store: "Store", sweep_run_id: str | None = None) -> dict[str, Any]:
         others = sel.search_all(store, f"tags.`{STAGE_TAG}` != '{sel.TRIAL_STAGE}'", ["attributes.start_time ASC"])
         stages = [r for r in others if r.data.tags.get(STAGE_TAG) not in (None, sel.SWEEP_STAGE)]
     return {
-        "store": store.uri,
+        "store": redact(store.uri),
         "experiment": store.experiment_name,
         "current_selection": current,
         "sweeps": [_sweep_row(store, r, current) for r in sweeps],

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig
 
+from physmend.redact import redact
 from physmend.config import ConfigError
 from physmend.sweep.configs import TrialConfigs
 from physmend.sweep.parent import _finish_parent
@@ -335,7 +336,7 @@ class Sweep:
         try:
             self.store.client.set_tag(run_id, sel.TRIAL_STATE_TAG, state)
             if error:
-                self.store.client.set_tag(run_id, ERROR_TAG, error)
+                self.store.client.set_tag(run_id, ERROR_TAG, redact(error))
         except Exception:  # noqa: BLE001 - the trial's FAIL in the study is what counts
             pass
 
@@ -371,7 +372,7 @@ class Sweep:
             run = self.store.client.get_run(run_id)
             self.store.client.set_tag(run_id, sel.TRIAL_STATE_TAG, "FAIL")
             if run.info.status == "RUNNING":
-                self.store.client.set_tag(run_id, ERROR_TAG, reason)
+                self.store.client.set_tag(run_id, ERROR_TAG, redact(reason))
                 self.store.client.set_terminated(run_id, "KILLED")
         except Exception:  # noqa: BLE001 - the run may be gone; the study is the record
             pass
@@ -404,7 +405,7 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
             proc.terminate()
         from physmend.tracking import ERROR_TAG
 
-        sweep.store.client.set_tag(sweep.parent_run_id, ERROR_TAG, f"{type(exc).__name__}: {exc}"[:5000])
+        sweep.store.client.set_tag(sweep.parent_run_id, ERROR_TAG, redact(f"{type(exc).__name__}: {exc}")[:5000])
         raise
     finally:
         bar.close()

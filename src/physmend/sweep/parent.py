@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from physmend.redact import redact
 from physmend.sweep.settings import Settings
 from physmend.sweep.space import SearchSpace
 from physmend.sweep.storage import PARENT_ATTR, PARENT_WAIT_S, RUN_ID_ATTR, Tally, tally
@@ -30,7 +31,7 @@ def _parent_tags(cfg: DictConfig, space: SearchSpace, study_name: str, storage_u
         DATA_TAG: str(OmegaConf.select(cfg, "data.name", default="")),
         sel.STUDY_TAG: study_name,
         sel.SPACE_TAG: space.name if space.label.startswith("sweeps/") else space.label,
-        sel.STORAGE_TAG: storage_url,
+        sel.STORAGE_TAG: redact(storage_url),
     }
 
 
@@ -40,11 +41,11 @@ def _create_parent(store: "Store", cfg: DictConfig, space: SearchSpace, settings
 
     run = store.client.create_run(store.experiment_id, run_name=f"sweep-{tags['physmend.study']}", tags=tags)
     run_id = run.info.run_id
-    store.client.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+    store.client.log_text(run_id, redact(OmegaConf.to_yaml(cfg, resolve=True)), "config.yaml")
     store.client.log_text(run_id, yaml.safe_dump(space.spec(), sort_keys=False), "space.yaml")
     for key, value in {"space": tags["physmend.space"], "sampler": settings.sampler, "pruner": settings.pruner,
                        "seed": settings.seed, "study": tags["physmend.study"]}.items():
-        store.client.log_param(run_id, key, str(value))
+        store.client.log_param(run_id, key, redact(str(value)))
     return run_id
 
 

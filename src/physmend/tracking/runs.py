@@ -1,4 +1,6 @@
-"""Stage runs: tags that chain a stage to its source run, config and artifacts as plain files."""
+"""Stage runs: tags that chain a stage to its source run, config and artifacts as plain files.
+
+Every text written to a run (config, parameters, tags, texts, errors) is :func:`~physmend.redact.redact`-ed."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from physmend.redact import redact
 from physmend.tracking.store import Store, TrackingError
 
 STAGE_TAG = "physmend.stage"
@@ -38,17 +41,17 @@ class StageRun:
     def log_params(self, params: dict[str, Any]) -> None:
         import mlflow
 
-        mlflow.log_params({k: str(v)[:6000] for k, v in params.items()})
+        mlflow.log_params({k: redact(str(v))[:6000] for k, v in params.items()})
 
     def set_tags(self, tags: dict[str, str]) -> None:
         import mlflow
 
-        mlflow.set_tags({k: str(v) for k, v in tags.items()})
+        mlflow.set_tags({k: redact(str(v)) for k, v in tags.items()})
 
     def log_text(self, text: str, path: str) -> None:
         import mlflow
 
-        mlflow.log_text(text, path)
+        mlflow.log_text(redact(text), path)
 
     def log_json(self, obj: Any, path: str) -> None:
         self.log_text(json.dumps(obj, indent=2, sort_keys=True, default=float), path)
@@ -94,15 +97,15 @@ def stage_run(
         run_name=run_name or stage,
         parent_run_id=parent_run_id,
         nested=parent_run_id is not None,
-        tags=all_tags,
+        tags={k: redact(str(v)) for k, v in all_tags.items()},
     ) as active:
         handle = StageRun(store, active.info.run_id)
         handle.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
         try:
             yield handle
         except BaseException as exc:
-            mlflow.set_tag(ERROR_TAG, f"{type(exc).__name__}: {exc}"[:5000])
-            mlflow.log_text("".join(traceback.format_exception(exc)), "error.txt")
+            mlflow.set_tag(ERROR_TAG, redact(f"{type(exc).__name__}: {exc}")[:5000])
+            mlflow.log_text(redact("".join(traceback.format_exception(exc))), "error.txt")
             mlflow.end_run(status="KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
             raise
 

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from physmend.redact import redact
+
 if TYPE_CHECKING:
     from mlflow.tracking import MlflowClient
 
@@ -56,6 +58,37 @@ def _folder_lock(folder: Path | None) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
+#: database URI schemes (SQLAlchemy dialects MLflow stores runs in)
+_DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
+
+
+def _probe_database(uri: str) -> None:
+    """Connect once to a database store and list its tables: a corrupt file, a folder that cannot
+    be written or a server that does not answer fails here at once (MLflow itself retries for
+    about 100 s before it gives up)."""
+    scheme = uri.split(":", 1)[0].split("+", 1)[0].lower()
+    if scheme not in _DATABASES:
+        return
+    import sqlalchemy
+
+    connect_args = {"connect_timeout": 10} if scheme in ("postgresql", "mysql") else {}
+    engine = sqlalchemy.create_engine(uri, connect_args=connect_args)
+    try:
+        sqlalchemy.inspect(engine).get_table_names()
+    finally:
+        engine.dispose()
+
+
+def _reason(exc: BaseException) -> str:
+    """The first line of what a store library said, without its SQL, links and stack."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    for noise in ("(sqlite3.OperationalError) ", "(sqlite3.DatabaseError) "):
+        text = text.replace(noise, "")
+    if isinstance(exc, KeyError):
+        text = f"unknown scheme {text}"
+    return redact(text[:300])
+
+
 def open_store(tracking_cfg: Any) -> Store:
     """Open (creating if needed) the MLflow store and experiment named by ``tracking.uri/experiment``.
 
@@ -70,20 +103,30 @@ def open_store(tracking_cfg: Any) -> Store:
     if db is not None:
         if not db.parent.is_dir():
             raise TrackingError(
-                f"tracking.uri {uri!r}: the folder {str(db.parent)!r} for the database does not exist"
+                f"tracking.uri {redact(uri)!r}: the folder {str(db.parent)!r} for the database does not exist"
             )
         uri = f"sqlite:///{db}"
-    mlflow.set_tracking_uri(uri)
-    with _folder_lock(db.parent if db is not None else None):  # workers starting together: one creates
-        client = MlflowClient(tracking_uri=uri)
-        exp = client.get_experiment_by_name(name)
-        if exp is None:
-            artifact_location = (db.parent / "mlartifacts" / name).as_uri() if db is not None else None
-            exp_id = client.create_experiment(name, artifact_location=artifact_location)
+    # a server that does not answer is reported in seconds, not after minutes of retries (the
+    # user's own settings of these win)
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "1")
+    os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "20")
+    try:
+        _probe_database(uri)
+        mlflow.set_tracking_uri(uri)
+        with _folder_lock(db.parent if db is not None else None):  # workers starting together: one creates
+            client = MlflowClient(tracking_uri=uri)
+            exp = client.get_experiment_by_name(name)
+            if exp is None:
+                artifact_location = (db.parent / "mlartifacts" / name).as_uri() if db is not None else None
+                exp_id = client.create_experiment(name, artifact_location=artifact_location)
+    except TrackingError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any failure to open the store is one line naming it
+        raise TrackingError(f"tracking.uri {redact(str(tracking_cfg.uri))!r} cannot be opened: {_reason(exc)}") from None
     if exp is not None:
         if exp.lifecycle_stage != "active":
             raise TrackingError(
-                f"tracking.experiment {name!r} is deleted in {uri}; restore it or choose another name"
+                f"tracking.experiment {name!r} is deleted in {redact(uri)}; restore it or choose another name"
             )
         exp_id = exp.experiment_id
     return Store(uri=uri, client=client, experiment_id=exp_id, experiment_name=name)

@@ -15,7 +15,8 @@ import torch
 from physmend.problem import Problem
 from physmend.simulate import Batch, make_batch
 from physmend.ude.hybrid import HybridModel
-from physmend.ude.reference import _sim_opts, _train_mask, simulate_with
+from physmend.ude.metrics import hybrid_states
+from physmend.ude.reference import _sim_opts, _train_mask
 
 
 @dataclass
@@ -47,7 +48,7 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
     with torch.no_grad():
         p = hybrid.parameters_for(batch.params)
         rhs = hybrid.rhs(p)
-        states = simulate_with(rhs, batch, batch.u0, _sim_opts(cfg))
+        states = hybrid_states(hybrid, problem, batch, _sim_opts(cfg))
         x = batch.inputs.at(batch.t)
         mask = _train_mask(problem, batch)
         pp = p[None].expand(states.shape[0], -1, -1)

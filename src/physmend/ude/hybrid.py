@@ -61,6 +61,20 @@ class HybridSpec:
     std: list[float]
     out_scale: list[float]
     estimated: list[str] = field(default_factory=list)
+    #: per state, its range over the training samples of the model as written (None: the model as
+    #: written holds it constant, so no scale is known and it is not bounded); empty: not recorded
+    state_low: list[float | None] = field(default_factory=list)
+    state_high: list[float | None] = field(default_factory=list)
+
+    def box(self, margin: float, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(lo, hi)``, each ``(n_states,)``: the training range widened by ``margin`` ranges on
+        either side (``∓inf`` for an unbounded state); None when no range was recorded."""
+        if not self.state_low:
+            return None
+        lo = torch.tensor([-torch.inf if v is None else v for v in self.state_low], dtype=dtype)
+        hi = torch.tensor([torch.inf if v is None else v for v in self.state_high], dtype=dtype)
+        width = hi - lo
+        return lo - margin * width, hi + margin * width
 
     @property
     def n_inputs(self) -> int:

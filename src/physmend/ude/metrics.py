@@ -5,6 +5,7 @@ report only) and the checkpoint problem without test experiments. Imports ``hybr
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 import dataclasses
 import math
@@ -13,6 +14,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch
+from physmend.simulate.initial import estimate_initial
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.reference import _sim_opts, _train_mask, _val_mask, held_out_apart, simulate_with
@@ -73,23 +75,75 @@ def checkpoint_problem(problem: Problem) -> Problem:
     return problem if len(keep) == len(problem.experiments) else dataclasses.replace(problem, experiments=keep)
 
 
+#: a whole-trajectory solve of a hybrid stops once a state is this many training ranges beyond
+#: its training range (:meth:`~physmend.ude.hybrid.HybridSpec.box`): that model has diverged, and an
+#: adaptive solver would otherwise chase it for minutes
+LEAVE_MARGIN = 100.0
+
+
+def guarded(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+            limits: tuple[torch.Tensor, torch.Tensor] | None, ids: list[str], state_names: list[str]
+            ) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    """``rhs(u (B, n), x)`` that raises :class:`SimulationError` (naming the experiment ``ids[b]``
+    and the state) when a state leaves ``limits = (lo, hi)`` (each ``(n,)``; None: ``rhs`` itself)."""
+    if limits is None:
+        return rhs
+    lo, hi = limits
+
+    def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        out = (u < lo) | (u > hi)
+        if bool(out.any()):
+            b, j = (int(v) for v in torch.nonzero(out.reshape(-1, u.shape[-1]))[0])
+            flat = u.reshape(-1, u.shape[-1])
+            value = float(flat[b, j])
+            bound = float(hi[j] if value > hi[j] else lo[j])
+            raise SimulationError(
+                f"the hybrid diverged in experiment {ids[b % len(ids)]!r}: state {state_names[j]!r} reached "
+                f"{value:.4g}, past {bound:.4g} ({LEAVE_MARGIN:g} ranges beyond its range in training)")
+        return rhs(u, x)
+
+    return f
+
+
 def _evaluate(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor, Batch]:
     """Metrics, outputs ``(T, B, k)`` and batch of ``hybrid`` on every experiment of ``problem``.
 
-    The outcome is judged on training and validation experiments only
-    (:func:`~physmend.ude.reference.held_out_apart`): a test experiment whose solve fails gets NaN
-    outputs, counted in ``test.failed`` (``test.rmse`` NaN) — it never decides whether a model survives.
+    The outcome is judged on training and validation experiments only (see :func:`hybrid_states`):
+    a test experiment whose solve fails gets NaN outputs, counted in ``test.failed`` (``test.rmse``
+    NaN) — it never decides whether a model survives.
     """
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    with torch.no_grad():
+        states = hybrid_states(hybrid, problem, batch, sim)
+        p = hybrid.parameters_for(batch.params)
+        y = problem.compiled.outputs(states, batch.inputs.at(batch.t), p[None])
+    return metrics_of(problem, batch, y), y, batch
+
+
+def hybrid_states(hybrid: HybridModel, problem: Problem, batch: Batch, sim: dict[str, Any]) -> torch.Tensor:
+    """Whole-trajectory states ``(T, B, n)`` of ``hybrid`` on ``batch`` (every experiment of ``problem``).
+
+    Declared-unknown initial values are this hybrid's own estimates
+    (:func:`~physmend.simulate.initial.estimate_initial`); test experiments are solved apart when
+    the batched solve fails (:func:`~physmend.ude.reference.held_out_apart`: a failing one is NaN).
+
+    Raises:
+        TrainingDiverged: the solve of the training and validation experiments failed.
+    """
+    names = problem.compiled.state_names
+    limits = hybrid.spec.box(LEAVE_MARGIN, problem.dtype)
+
+    def outputs(sub: Batch, u0: torch.Tensor) -> torch.Tensor:
+        p = hybrid.parameters_for(sub.params)
+        states = simulate_with(guarded(hybrid.rhs(p), limits, sub.ids, names), sub, u0, sim)
+        return problem.compiled.outputs(states, sub.inputs.at(sub.t), p[None])
 
     def solve(sub: Batch) -> torch.Tensor:
         p = hybrid.parameters_for(sub.params)
-        states = simulate_with(hybrid.rhs(p), sub, sub.u0, sim)
-        return problem.compiled.outputs(states, sub.inputs.at(sub.t), p[None])
+        u0 = estimate_initial(outputs, sub, names)
+        return simulate_with(guarded(hybrid.rhs(p), limits, sub.ids, names), sub, u0, sim)
 
-    with torch.no_grad():
-        try:
-            y = held_out_apart(problem, batch, solve)
-        except SimulationError as exc:
-            raise TrainingDiverged(f"whole-trajectory simulation of the hybrid failed: {exc}") from exc
-    return metrics_of(problem, batch, y), y, batch
+    try:
+        return held_out_apart(problem, batch, solve)
+    except SimulationError as exc:
+        raise TrainingDiverged(f"whole-trajectory simulation of the hybrid failed: {exc}") from exc

@@ -8,6 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+import dataclasses
 import math
 
 import torch
@@ -15,6 +16,7 @@ import torch
 from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch, odeint
 from physmend.simulate.core import OWN_METHODS
+from physmend.simulate.initial import estimate_initial, has_unknown
 
 
 @dataclass
@@ -67,11 +69,19 @@ def reference(problem: Problem, cfg: Any) -> Reference:
     model = problem.compiled
     batch = make_batch(problem.experiments, model, problem.dtype)
 
+    sim = _sim_opts(cfg)
+
+    def outputs(sub: Batch, u0: torch.Tensor) -> torch.Tensor:
+        states = simulate_with(model.bind(sub.params), sub, u0, sim, model.jacobian(sub.params))
+        return model.outputs(states, sub.inputs.at(sub.t), sub.params[None])
+
     def solve(sub: Batch) -> torch.Tensor:
         rhs = model.bind(sub.params)
-        return simulate_with(rhs, sub, sub.u0, _sim_opts(cfg), model.jacobian(sub.params))
+        return simulate_with(rhs, sub, sub.u0, sim, model.jacobian(sub.params))
 
     with torch.no_grad():
+        if has_unknown(batch):  # declared-unknown initial values: the model as written's own estimates
+            batch = dataclasses.replace(batch, u0=estimate_initial(outputs, batch, model.state_names))
         states = held_out_apart(problem, batch, solve)
         rhs = model.bind(batch.params)
         x = batch.inputs.at(batch.t)
@@ -93,11 +103,13 @@ def held_out_apart(problem: Problem, batch: Batch, solve: Callable[[Batch], torc
         if not test:
             raise
     kept = [i for i in range(batch.size) if i not in test]
+    u0 = {int(i): batch.u0[i] for i in range(batch.size)}
     out: torch.Tensor | None = None
     for group in [kept] + [[i] for i in test]:
         if not group:
             continue
         sub = make_batch([problem.experiments[i] for i in group], problem.compiled, problem.dtype)
+        sub = dataclasses.replace(sub, u0=torch.stack([u0[i] for i in group]))  # estimated starts stay
         try:
             part = solve(sub)
         except SimulationError:

@@ -97,20 +97,32 @@ def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
     )
 
 
-def rk4_segments(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting) -> torch.Tensor:
-    """Fixed-step RK4 over all segments at once: states at grid points ``(steps+1, S, n)``."""
+def rk4_segments(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting,
+                 box: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """Fixed-step RK4 over all segments at once: states at grid points ``(steps+1, S, n)``.
+
+    ``box = (lo, hi)``, each ``(n,)``: every stage's state is held inside it (:func:`state_box`), so
+    a segment that a half-trained correction sends off to infinity (a population pushed below zero
+    into a quadratic loss, say) stays finite: it fits badly, and the other segments still train.
+    """
     h = plan.dt
+    hold = (lambda v: v) if box is None else (lambda v: torch.clamp(v, box[0], box[1]))
     u = u0
     out = [u]
     for k in range(plan.steps):
         x0, xm, x1 = plan.x_half[2 * k], plan.x_half[2 * k + 1], plan.x_half[2 * k + 2]
         k1 = rhs(u, x0)
-        k2 = rhs(u + 0.5 * h * k1, xm)
-        k3 = rhs(u + 0.5 * h * k2, xm)
-        k4 = rhs(u + h * k3, x1)
-        u = u + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4)
+        k2 = rhs(hold(u + 0.5 * h * k1), xm)
+        k3 = rhs(hold(u + 0.5 * h * k2), xm)
+        k4 = rhs(hold(u + h * k3), x1)
+        u = hold(u + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4))
         out.append(u)
     return torch.stack(out)
+
+
+#: the training solve holds each state within this many training ranges beyond its training range
+#: (:meth:`~physmend.ude.hybrid.HybridSpec.box`)
+BOX_MARGIN = 3.0
 
 
 def chained_starts(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting,
@@ -143,6 +155,14 @@ def chained_starts(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0
         return torch.where(ok[:, None], u, u0)
 
 
+def segments_finite(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting,
+                    box: tuple[torch.Tensor, torch.Tensor] | None = None) -> bool:
+    """True when every segment of ``plan``, started at ``u0 (S, n)``, stays finite under ``rhs``
+    (one RK4 pass as training takes it, no gradients): a warm start that fails it is not a start."""
+    with torch.no_grad():
+        return bool(torch.isfinite(rk4_segments(rhs, u0, plan, box)).all())
+
+
 def _initial_segments(problem: Problem, ref: Reference, plan: Shooting) -> torch.Tensor:
     """Segment starts from the model as written, with measured states set to their measurements."""
     t = ref.batch.t
@@ -161,6 +181,28 @@ def _initial_segments(problem: Problem, ref: Reference, plan: Shooting) -> torch
                     k = int(torch.argmin((t - plan.starts[s]).abs() + (~ok) * 1e30))
                     u[s, i] = col[k]
     return u
+
+
+def pinned_starts(batch: Batch, plan: Shooting, state_names: Sequence[str]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Which segment-start entries are the known initial state, and bounds of the trained ones.
+
+    Returns ``pinned (S, n)``: True on an experiment's first segment, except for initial values its
+    data config declares unknown (those are trained like any other segment start, within their
+    range); ``lo, hi (S, n)``: that range on those entries, ``∓inf`` elsewhere.
+    """
+    s, n = int(plan.exp_index.shape[0]), len(state_names)
+    pinned = plan.first[:, None].expand(s, n).clone()
+    lo = torch.full((s, n), -math.inf, dtype=batch.u0.dtype)
+    hi = torch.full((s, n), math.inf, dtype=batch.u0.dtype)
+    if not any(batch.initial_ranges):
+        return pinned, lo, hi
+    index = {name: i for i, name in enumerate(state_names)}
+    for row in torch.nonzero(plan.first).flatten().tolist():
+        for name, (low, high) in batch.initial_ranges[int(plan.exp_index[row])].items():
+            i = index[name]
+            pinned[row, i] = False
+            lo[row, i], hi[row, i] = float(low), float(high)
+    return pinned, lo, hi
 
 
 def _output_spread(obs: torch.Tensor) -> torch.Tensor:

@@ -104,4 +104,30 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
         std=std.tolist(),
         out_scale=(float(ude.output_scale) * rms).tolist(),
         estimated=estimated,
+        **state_range(ref.states, mask),
     )
+
+
+#: a state's range is at least this share of its magnitude (a nearly constant temperature in kelvin
+#: gets a range of tens of kelvin, not the millikelvin it happened to move in training)
+MIN_RELATIVE_RANGE = 0.1
+
+
+def state_range(states: torch.Tensor, mask: torch.Tensor) -> dict[str, list[float | None]]:
+    """Each state's range over the training samples ``mask (T, B)`` of ``states (T, B, n)`` (the model
+    as written), at least :data:`MIN_RELATIVE_RANGE` of its magnitude; None for a state held at zero."""
+    values = states[mask]
+    values = values[torch.isfinite(values).all(-1)]
+    low: list[float | None] = []
+    high: list[float | None] = []
+    for j in range(states.shape[-1]):
+        if values.shape[0] == 0:
+            low.append(None), high.append(None)
+            continue
+        a, b = float(values[:, j].min()), float(values[:, j].max())
+        pad = max(0.0, MIN_RELATIVE_RANGE * max(abs(a), abs(b)) - (b - a)) / 2
+        if b - a + 2 * pad <= 0.0:
+            low.append(None), high.append(None)
+        else:
+            low.append(a - pad), high.append(b + pad)
+    return {"state_low": low, "state_high": high}

@@ -16,14 +16,15 @@ from omegaconf import DictConfig
 import torch
 
 from physmend.problem import Problem
+from physmend.simulate.initial import estimate_initial
 from physmend.simulate import Batch, make_batch
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec
 from physmend.ude.stack_net import _Net, _pad_networks, _write_back
 from physmend.ude.stack_plan import _plan_key, _time_grid_parts
-from physmend.ude.metrics import _evaluate, checkpoint_problem, metrics_of
+from physmend.ude.metrics import LEAVE_MARGIN, _evaluate, checkpoint_problem, guarded, metrics_of
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.reference import Reference, _train_mask, simulate_with
-from physmend.ude.shooting import Shooting, _equation_scale, _output_spread, chained_starts, rk4_segments
+from physmend.ude.shooting import Shooting, _equation_scale, _output_spread, chained_starts, pinned_starts, rk4_segments, BOX_MARGIN
 from physmend.ude.schedule import _chain
 from physmend.ude.warmstart import Forced, fit_models, recall_derived, remember_derived, warm_key
 
@@ -88,7 +89,9 @@ class _Stack:
         # shared pieces of the training solve (as in train())
         tm = _train_mask(problem, ref.batch)
         self.fixed_first = ref.batch.u0[plan.exp_index]
+        self.pinned, self.lo, self.hi = pinned_starts(ref.batch, plan, problem.compiled.state_names)
         self.state_scale = ref.states[tm].std(0).clamp_min(1e-3)
+        self.box = members[0].hybrid.spec.box(BOX_MARGIN, problem.dtype)  # one reference: one range for all
         self.out_std = _output_spread(ref.batch.obs[tm])
         self.params_seg = ref.batch.params[plan.exp_index]
         self.has_next = plan.next_of >= 0
@@ -188,9 +191,10 @@ class _Stack:
         m, plan = self.size, self.plan_rows
         s, n = self.seg0.shape[1:]
         p = self._parameters_for(self.params_seg, self.est_raw, m)  # (M·S, n_params)
-        u0 = torch.where(self.plan.first[None, :, None], self.fixed_first[None], self.seg0 + self.free * self.state_scale)
+        u0 = torch.where(self.pinned[None], self.fixed_first[None],
+                         torch.clamp(self.seg0 + self.free * self.state_scale, self.lo, self.hi))
         u0 = u0.reshape(m * s, n)
-        traj = rk4_segments(self._rhs(self.net, m, p), u0, plan)  # (K+1, M·S, n)
+        traj = rk4_segments(self._rhs(self.net, m, p), u0, plan, self.box)  # (K+1, M·S, n)
         y_grid = self.problem.compiled.outputs(traj, plan.x_half[0::2], p[None])  # (K+1, M·S, k)
         y_grid = y_grid.reshape(y_grid.shape[0], m, s, -1).movedim(1, 0)  # (M, K+1, S, k)
         ya = y_grid[:, plan.obs_k, plan.obs_s, plan.obs_j]
@@ -338,11 +342,20 @@ class _Stack:
         m, b = len(positions), batch.size
         rep = torch.arange(b).repeat(m)
         names = [f"{self.members[i].slot}:{e}" for i in positions for e in batch.ids]
-        batch_m = dataclasses.replace(batch, ids=names, inputs=batch.inputs.select(rep), params=batch.params[rep],
-                                      u0=batch.u0[rep], obs=batch.obs[:, rep], split_time=batch.split_time[rep])
-        p = self._parameters_for(batch.params, est, m)  # (M·B, n_params)
-        states = simulate_with(self._rhs(net, m, p), batch_m, batch_m.u0, sim)
-        return self.problem.compiled.outputs(states, batch_m.inputs.at(batch.t), p[None])  # (T, M·B, k)
+        batch_m = batch.take(rep, ids=names)
+        limits = self.members[0].hybrid.spec.box(LEAVE_MARGIN, self.problem.dtype)
+
+        def outputs(rows: Batch, u0: torch.Tensor) -> torch.Tensor:
+            """Rows model-major, the same experiments for every model (as every caller here builds them)."""
+            p = self._parameters_for(rows.params[: rows.size // m], est, m)  # (M·R, n_params)
+            rhs = guarded(self._rhs(net, m, p), limits, rows.ids, self.problem.compiled.state_names)
+            states = simulate_with(rhs, rows, u0, sim)
+            return self.problem.compiled.outputs(states, rows.inputs.at(rows.t), p[None])
+
+        # declared-unknown initial values: each model's own estimates (a failed candidate solve is
+        # raised: the caller then evaluates each model alone, where failures are isolated)
+        u0 = estimate_initial(outputs, batch_m, self.problem.compiled.state_names, isolate=False)
+        return outputs(batch_m, u0)  # (T, M·B, k)
 
     def _evaluate_alone(self, position: int, sim: dict[str, Any], problem: Problem
                         ) -> tuple[dict[str, float], torch.Tensor] | BaseException:

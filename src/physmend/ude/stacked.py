@@ -61,7 +61,8 @@ from physmend.ude.stack_plan import _setup
 from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.reference import Reference, _sim_opts
-from physmend.ude.shooting import Shooting
+from physmend.ude.schedule import _lr_schedule
+from physmend.ude.shooting import Shooting, pinned_starts, segments_finite
 from physmend.ude.warmstart import Forced, recall_derived, remember_derived
 
 
@@ -190,13 +191,30 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
     return results  # type: ignore[return-value]
 
 
+def _drop_unstable_warm_starts(members: list[_Member], initial: list[dict[str, Any]], ref: Reference,
+                               plan: Shooting) -> None:
+    """A member whose warm-started network leaves the finite range on its own segments goes back to
+    its network as initialised and trains without a warm start (as :func:`train` does)."""
+    pinned, _, _ = pinned_starts(ref.batch, plan, members[0].hybrid.compiled.state_names)
+    fixed_first = ref.batch.u0[plan.exp_index]
+    params_seg = ref.batch.params[plan.exp_index]
+    for mem, state in zip(members, initial):
+        rhs = mem.hybrid.rhs(mem.hybrid.parameters_for(params_seg))
+        if not segments_finite(rhs, torch.where(pinned, fixed_first, mem.seg0), plan):
+            mem.hybrid.load_state_dict(state)
+            mem.forced, mem.warm_key = None, None
+            mem.lrs = _lr_schedule(mem.cfg, warm=False)
+
+
 def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,
          report: Report | None, warm: tuple[Forced, int, int] | None = None) -> list[_Member]:
     """The shared epoch loop (after the batched warm start ``warm``: forced trajectories, iterations,
     window); returns every member, each with a best checkpoint or an outcome."""
     tc = cfg.train
     if warm is not None:
+        initial = [copy.deepcopy(mem.hybrid.state_dict()) for mem in members]
         _warm_fit(members, problem, ref, plan, cfg, *warm)
+        _drop_unstable_warm_starts(members, initial, ref, plan)
     stack = _Stack(members, problem, ref, plan, cfg)
     if warm is not None:
         stack.chain_starts()

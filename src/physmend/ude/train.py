@@ -37,7 +37,7 @@ from physmend.ude.warmstart import segment_starts, warm_start
 from physmend.ude.hybrid import UDEConfigError  # noqa: F401
 from physmend.ude.metrics import evaluate, metrics_of  # noqa: F401
 from physmend.ude.reference import Reference, simulate_with  # noqa: F401
-from physmend.ude.shooting import Shooting  # noqa: F401
+from physmend.ude.shooting import BOX_MARGIN, Shooting, pinned_starts, segments_finite  # noqa: F401
 from physmend.ude.spec import informative_parameters  # noqa: F401
 
 
@@ -63,11 +63,18 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     plan = plan_shooting(problem, ref.batch, cfg)
     check_budget(plan, problem, [cfg])
     seg0 = _initial_segments(problem, ref, plan)
+    initial = copy.deepcopy(hybrid.state_dict())
     forced = warm_start(hybrid, problem, ref.batch, cfg)
     if forced is not None:
         seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
     fixed_first = ref.batch.u0[plan.exp_index]
+    pinned, lo, hi = pinned_starts(ref.batch, plan, problem.compiled.state_names)
     params_seg = ref.batch.params[plan.exp_index]
+    box = hybrid.spec.box(BOX_MARGIN, problem.dtype)
+    if forced is not None and not segments_finite(hybrid.rhs(hybrid.parameters_for(params_seg)),
+                                                  torch.where(pinned, fixed_first, seg0), plan):
+        hybrid.load_state_dict(initial)  # the warm-started network leaves the finite range: not a start
+        forced = None
     if _chain(tc) and forced is not None:
         seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), torch.where(plan.first[:, None], fixed_first, seg0), plan,
                               keep=forced.measured)
@@ -124,8 +131,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     for epoch in range(1, epochs + 1):
         opt.zero_grad(set_to_none=True)
         p = hybrid.parameters_for(params_seg)
-        u0 = torch.where(plan.first[:, None], fixed_first, seg0 + free * state_scale)
-        traj = rk4_segments(hybrid.rhs(p), u0, plan)  # (K+1, S, n)
+        u0 = torch.where(pinned, fixed_first, torch.clamp(seg0 + free * state_scale, lo, hi))
+        traj = rk4_segments(hybrid.rhs(p), u0, plan, box)  # (K+1, S, n)
         y_grid = outputs(traj, plan.x_half[0::2], p[None])  # (K+1, S, k)
         ya = y_grid[plan.obs_k, plan.obs_s, plan.obs_j]
         yb = y_grid[plan.obs_k + 1, plan.obs_s, plan.obs_j]

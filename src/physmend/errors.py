@@ -12,8 +12,9 @@ from physmend.symbolic import SymbolicError
 from physmend.explain.mechanisms import MechanismError
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.io import ArtifactError
+from physmend.sweep.loop import NoTrialCompleted
 
 USER_ERRORS: tuple[type[Exception], ...] = (
-    ArtifactError, ConfigError, DataError, MechanismError, ModelError, SimulationError, SymbolicError,
-    TrackingError, TrainingDiverged, UDEConfigError,
+    ArtifactError, ConfigError, DataError, MechanismError, ModelError, NoTrialCompleted, SimulationError,
+    SymbolicError, TrackingError, TrainingDiverged, UDEConfigError,
 )

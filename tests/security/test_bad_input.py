@@ -62,6 +62,7 @@ CASES: list[tuple[str, str, Setup, list[str]]] = [
     ("unwritable folder", "diagnose", _override("tracking.uri=sqlite:////proc/self/mlflow.db"),
      ["tracking.uri", "/proc/self"]),
     ("corrupt store", "diagnose", _corrupt_store, ["mlflow.db"]),
+    ("no server", "diagnose", _override("tracking.uri=http://127.0.0.1:9"), ["tracking.uri", "127.0.0.1:9"]),
     ("builder raises", "diagnose", _raising_builder, ["broken.py", "line", "spring constant must be positive"]),
     ("builder syntax", "diagnose", _syntax_error_builder, ["typo.py", "line 1"]),
 ]

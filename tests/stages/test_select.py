@@ -135,3 +135,22 @@ def test_runs_and_select(user_project: Path, monkeypatch: pytest.MonkeyPatch, ca
     trials = {t["run_id"]: t for t in json.loads(capsys.readouterr().out)["sweeps"][0]["trials"]}
     assert trials[other["run_id"]]["selected"] and not trials[other["run_id"]]["best"]
     assert trials[best["run_id"]]["best"] and not trials[best["run_id"]]["selected"]
+
+
+def test_mask_rivals_and_the_best_retrained_set() -> None:
+    """The mask stage retrains the next-ranked equation in place of the last kept one and keeps
+    whichever set validates best; a diverged retraining never wins, and all diverging is an error."""
+    from types import SimpleNamespace
+
+    from physmend.stages.mask import best_retrained, rivals
+    from physmend.ude import TrainingDiverged
+
+    assert rivals(["tank2.h"], ["tank2.h", "tank1.h", "pipe.q"], 1) == [["tank1.h"]]
+    assert rivals(["a", "b"], ["a", "b", "c", "d", "e"], 2) == [["a", "c"], ["a", "d"]]
+    assert rivals(["a"], ["a"], 3) == [] and rivals(["a"], ["a", "b"], 0) == []
+    ranked, rival = SimpleNamespace(val_rmse=0.009), SimpleNamespace(val_rmse=0.002)
+    assert best_retrained([(["tank2.h"], ranked), (["tank1.h"], rival)]) == (["tank1.h"], rival)
+    boom = TrainingDiverged("loss became non-finite")
+    assert best_retrained([(["tank2.h"], ranked), (["tank1.h"], boom)]) == (["tank2.h"], ranked)
+    with pytest.raises(TrainingDiverged, match="non-finite"):
+        best_retrained([(["tank2.h"], boom), (["tank1.h"], TrainingDiverged("other"))])

@@ -289,6 +289,21 @@ def test_consecutive_failures_stop_the_sweep(user_project: Path, monkeypatch: py
     assert parent.info.status == "FAILED" and "physmend.selected_run_id" not in parent.data.tags
 
 
+def test_a_sweep_where_no_trial_finishes_exits_non_zero(user_project: Path, monkeypatch: pytest.MonkeyPatch,
+                                                       capsys) -> None:  # noqa: ANN001
+    monkeypatch.chdir(user_project)
+    space = write_space(user_project, "params:\n  ude.output_scale: {choice: [1.0e+300]}\n")
+    args = sweep_args(user_project, f"sweep.space={space}", "sweep.n_trials=1", "sweep.max_failures_in_a_row=5")
+    assert main(args) == 2
+    captured = capsys.readouterr()
+    assert "no trial finished training, so nothing is selected" in captured.out  # the summary still says what happened
+    (line,) = [l for l in captured.err.splitlines() if "error:" in l]
+    assert "none of its 1 trials finished training (1 failed, 0 pruned)" in line
+    store, _ = open_stores(user_project)
+    (parent,) = sweep_parents(store)
+    assert parent.info.status == "FINISHED" and "physmend.selected_run_id" not in parent.data.tags
+
+
 # -- interrupted and stale trials ------------------------------------------------------------------
 def _wait_for(predicate: Any, timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
@@ -412,6 +427,15 @@ def test_is_stale_by_pid_and_by_heartbeat() -> None:
     assert not sw.is_stale(running({"worker": {"host": "there", "pid": 1}, "heartbeat": now - 30}), now=now, stale_after=60, me=me)
     assert sw.is_stale(running({"worker": {"host": "there", "pid": 1}, "heartbeat": now - 90}), now=now, stale_after=60, me=me)
     assert not sw.is_stale(running({}), now=now, stale_after=60, me=me)  # just asked: no worker recorded yet
+    # workers in two containers with equal host names and PIDs: told apart by their random IDs and
+    # namespaces, so a live one (fresh heartbeat) is never marked stale by the other
+    mine = {"id": "f" * 32, "host": "box", "pid": os.getpid(), "ns": "boot-a:4026531836"}
+    twin = {"id": "0" * 32, "host": "box", "pid": os.getpid(), "ns": "boot-b:4026531836"}
+    assert not sw.is_stale(running({"worker": twin, "heartbeat": now - 30}), now=now, stale_after=60, me=mine)
+    assert sw.is_stale(running({"worker": twin, "heartbeat": now - 90}), now=now, stale_after=60, me=mine)
+    assert sw.is_stale(running({"worker": dict(mine), "heartbeat": now}), now=now, stale_after=60, me=mine)
+    gone = {**twin, "ns": mine["ns"], "pid": 2 ** 22 + 17}  # same namespace, a PID that does not exist
+    assert sw.is_stale(running({"worker": gone, "heartbeat": now}), now=now, stale_after=60, me=mine)
 
 
 # -- several workers -------------------------------------------------------------------------------

@@ -3,11 +3,16 @@
 Ranks the trained network's outputs by ``mean_t |ΔNN_i| / max_t |du_i/dt|`` on the training
 samples, simulates the hybrid with only the top k corrections for k = 1, 2, … and keeps the
 smallest k whose *validation* RMSE (whole-trajectory simulation) is within a tolerance of the
-full network's; then retrains a network that corrects only those equations.
+full network's; then retrains a network that corrects only those equations — and, for each of the
+next ``mask.rivals`` equations in the ranking, one with the last kept equation swapped for it. The
+set whose retrained network validates best is kept. (The ranking favours what a warm start could
+fit — the equations of measured states; a correction needed on a hidden state's equation can hide
+behind one on the measured state downstream, and only a network trained on it alone shows it.)
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from omegaconf import OmegaConf
@@ -27,6 +32,39 @@ def choose_k(full: float, by_k: list[tuple[int, float]], tolerance: float) -> in
             return k
     best = min(r for _, r in by_k)
     return next(k for k, r in by_k if r <= (1.0 + tolerance) * best)
+
+
+def rivals(kept: list[str], order: list[str], n: int) -> list[list[str]]:
+    """Other equation sets worth retraining: the last kept equation swapped for each of the next
+    ``n`` in the ranking ``order``."""
+    if n <= 0 or not kept:
+        return []
+    return [kept[:-1] + [name] for name in [o for o in order if o not in kept][:n]]
+
+
+def _retrain(work: Any, problem: Any, names: list[str], train: Any) -> Any:
+    """A network that corrects only ``names``, trained; its :class:`TrainingDiverged` if it diverged."""
+    from physmend.ude import TrainingDiverged
+
+    cfg = OmegaConf.create(OmegaConf.to_container(work))
+    cfg.ude.corrected = [n for n in problem.model.state_names if n in names]
+    try:
+        return train(cfg, problem)
+    except TrainingDiverged as exc:
+        return exc
+
+
+def _val(result: Any) -> float:
+    return float("nan") if isinstance(result, Exception) else float(result.val_rmse)
+
+
+def best_retrained(tried: list[tuple[list[str], Any]]) -> tuple[list[str], Any]:
+    """The equation set whose retrained network has the lowest validation RMSE (training and
+    validation experiments only); the first set's error when every one diverged."""
+    ok = [(names, r) for names, r in tried if not isinstance(r, Exception) and math.isfinite(r.val_rmse)]
+    if not ok:
+        raise tried[0][1]
+    return min(ok, key=lambda item: item[1].val_rmse)
 
 
 def _plot(ranking: list[tuple[str, float]], by_k: list[tuple[int, float]], full: float, k: int) -> Any:
@@ -89,17 +127,25 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         hybrid.keep_only(hybrid.spec.corrected)
         k = choose_k(full, by_k, float(mc.tolerance))
         kept = order[:k]
-    kept_in_order = [n for n in problem.model.state_names if n in kept]
     result = None
+    tried: list[tuple[list[str], Any]] = []
     if bool(mc.retrain):
         work = OmegaConf.merge(work, OmegaConf.from_dotlist([str(o) for o in mc.train_overrides]))
-        work.ude.corrected = kept_in_order
-        result = train(work, problem)
+        sets = [kept] + ([] if mc.keep else rivals(kept, [n for n, _ in ranking], int(mc.rivals)))
+        tried = [(names, _retrain(work, problem, names, train)) for names in sets]
+        kept, result = best_retrained(tried)
+    kept_in_order = [n for n in problem.model.state_names if n in kept]
+    if result is not None:
+        work.ude.corrected = kept_in_order  # the retrained network's configuration
     with stage_run(store, work, stage=STAGE, source_run_id=src_run.info.run_id, run_name="mask",
                    tags={"physmend.kept": ",".join(kept_in_order)}) as run_:
         run_.log_params({"k": k, "kept": ",".join(kept_in_order), "tolerance": mc.tolerance})
-        run_.log_metrics({"full.val.rmse": full, **{f"val.rmse.k{kk}": r for kk, r in by_k}})
-        run_.log_json({"ranking": ranking, "by_k": by_k, "full_val_rmse": full, "kept": kept_in_order}, "ranking.json")
+        run_.log_metrics({"full.val.rmse": full, **{f"val.rmse.k{kk}": r for kk, r in by_k},
+                          **{f"retrained.val.rmse.{'+'.join(names)}": _val(r) for names, r in tried}})
+        run_.log_json({"ranking": ranking, "by_k": by_k, "full_val_rmse": full, "kept": kept_in_order,
+                       "retrained": [{"corrected": names, "val.rmse": _val(r),
+                                      "error": None if not isinstance(r, Exception) else str(r)} for names, r in tried]},
+                      "ranking.json")
         fig = _plot(ranking, by_k or [(k, full)], full, k)
         run_.log_figure(fig, "plots/ranking.png")
         plt.close(fig)
@@ -115,6 +161,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     lines += [f"{i + 1:3d}. {n}  {s:.3g}" for i, (n, s) in enumerate(ranking[:10])]
     lines += ["", f"Full network: validation RMSE {full:.4g}."]
     lines += [f"  top {kk}: {r:.4g}" for kk, r in by_k]
+    if len(tried) > 1:
+        lines += ["", "Each candidate set retrained alone (the ranking favours equations a warm start could fit; "
+                      "a hidden state's equation may explain the data better):"]
+        lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}" + ("  <- kept" if names == kept else "")
+                  for names, r in tried]
     lines += [f"Kept k = {k}: {', '.join(kept_in_order)} (tolerance {float(mc.tolerance):.0%})."]
     if result is not None:
         lines.append(f"Retrained with {k} output(s): validation RMSE {result.val_rmse:.4g}, "

@@ -379,6 +379,10 @@ class Sweep:
 
 
 
+class NoTrialCompleted(RuntimeError):
+    """A sweep ended without one trial that finished training: nothing is selected (exit status 2)."""
+
+
 def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
     """Run this worker's loop, then wait for the ``helpers`` (worker processes) before the summary."""
     from tqdm import tqdm
@@ -410,12 +414,16 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
     finally:
         bar.close()
         if status == "FINISHED":
-            print(summary(sweep, _finish_parent(sweep, status)))
+            counts = _finish_parent(sweep, status)
+            print(summary(sweep, counts))
         else:
             try:
                 _finish_parent(sweep, status)
             except Exception as exc:  # noqa: BLE001 - never mask the error that ended the sweep
                 sys.stderr.write(f"could not record the end of sweep run {sweep.parent_run_id}: {exc}\n")
+    if counts.best_value is None and not counts.running:  # the command did not do its job: say so, non-zero
+        raise NoTrialCompleted(f"sweep {sweep.study.study_name!r}: none of its {counts.counted} trials finished "
+                               f"training ({counts.failed} failed, {counts.pruned} pruned); `physmend runs` lists why")
     return sweep.parent_run_id
 
 

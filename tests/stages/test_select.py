@@ -148,6 +148,10 @@ def test_mask_rivals_and_the_best_retrained_set() -> None:
     assert rivals(["tank2.h"], ["tank2.h", "tank1.h", "pipe.q"], 1) == [["tank1.h"]]
     assert rivals(["a", "b"], ["a", "b", "c", "d", "e"], 2) == [["a", "c"], ["a", "d"]]
     assert rivals(["a"], ["a"], 3) == [] and rivals(["a"], ["a", "b"], 0) == []
+    # only an unmeasured rival for a measured last kept state
+    measured = {"tank2.h", "pipe.q"}
+    assert rivals(["tank2.h"], ["tank2.h", "pipe.q", "tank1.h"], 1, measured) == [["tank1.h"]]
+    assert rivals(["tank1.h"], ["tank1.h", "tank2.h", "tank3.h"], 1, measured) == []
     ranked, rival = SimpleNamespace(val_rmse=0.009), SimpleNamespace(val_rmse=0.002)
     assert best_retrained([(["tank2.h"], ranked), (["tank1.h"], rival)]) == (["tank1.h"], rival)
     boom = TrainingDiverged("loss became non-finite")

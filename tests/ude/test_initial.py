@@ -90,7 +90,9 @@ def test_with_the_physics_complete_the_true_starts_are_found(user_project: Path,
 
     u0 = estimate_initial(outputs, batch, problem.compiled.state_names)
     expected = torch.tensor([[x0, 0.0] for x0 in TRUE_X0], dtype=u0.dtype)
-    torch.testing.assert_close(u0, expected, rtol=0, atol=0.01)
+    # position to 1 cm, velocity to 2 cm/s: what 3 mm noise on a 3 s opening allows
+    torch.testing.assert_close(u0[:, 0], expected[:, 0], rtol=0, atol=0.01)
+    torch.testing.assert_close(u0[:, 1], expected[:, 1], rtol=0, atol=0.02)
 
 
 def test_a_failing_candidate_scores_infinitely_badly_and_a_batch_without_unknowns_is_untouched(

@@ -36,14 +36,14 @@ FIRST_ROUND = 17
 MAX_FIRST = 129
 #: best candidates of each experiment kept and searched around in each refining round (an opening
 #: window can fit well at more than one start: an oscillation's phase, say)
-KEEP = 3
+KEEP = 2
 #: each refining round samples one spacing either side of each kept candidate (a 3-point grid per
 #: unknown up to :data:`GRID_UP_TO` unknowns), then divides the spacing by :data:`SHRINK`: the best
 #: of a round lies within half a spacing of the optimum, inside the next round's reach
 SHRINK = 2.0
 GRID_UP_TO = 3
-#: refining rounds (one unknown: range/16 → range/4096 at the end)
-ROUNDS = 8
+#: refining rounds (one unknown: range/16 → range/1024 at the end)
+ROUNDS = 6
 
 #: ``solve(rows, u0)``: outputs ``(T, R, k)`` of the model on the batch elements ``rows`` started at ``u0 (R, n)``
 Solve = Callable[[Batch, torch.Tensor], torch.Tensor]

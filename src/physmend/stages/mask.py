@@ -3,9 +3,10 @@
 Ranks the trained network's outputs by ``mean_t |ΔNN_i| / max_t |du_i/dt|`` on the training
 samples, simulates the hybrid with only the top k corrections for k = 1, 2, … and keeps the
 smallest k whose *validation* RMSE (whole-trajectory simulation) is within a tolerance of the
-full network's; then retrains a network that corrects only those equations — and, for each of the
-next ``mask.rivals`` equations in the ranking, one with the last kept equation swapped for it. The
-set whose retrained network validates best is kept. (The ranking favours what a warm start could
+full network's; then retrains a network that corrects only those equations — and, when the last
+kept equation is a measured state's, for each of the next ``mask.rivals`` unmeasured states in the
+ranking, one with the last kept equation swapped for it. The set whose retrained network validates
+best is kept. (The ranking favours what a warm start could
 fit — the equations of measured states; a correction needed on a hidden state's equation can hide
 behind one on the measured state downstream, and only a network trained on it alone shows it.)
 """
@@ -34,12 +35,19 @@ def choose_k(full: float, by_k: list[tuple[int, float]], tolerance: float) -> in
     return next(k for k, r in by_k if r <= (1.0 + tolerance) * best)
 
 
-def rivals(kept: list[str], order: list[str], n: int) -> list[list[str]]:
+def rivals(kept: list[str], order: list[str], n: int, measured: set[str] | None = None) -> list[list[str]]:
     """Other equation sets worth retraining: the last kept equation swapped for each of the next
-    ``n`` in the ranking ``order``."""
+    ``n`` in the ranking ``order``. With ``measured`` (states that are outputs), only when the last
+    kept state is measured, and only unmeasured rivals: the ranking is biased exactly there (a
+    warm start fits measured equations; a hidden state's correction hides behind them)."""
     if n <= 0 or not kept:
         return []
-    return [kept[:-1] + [name] for name in [o for o in order if o not in kept][:n]]
+    others = [o for o in order if o not in kept]
+    if measured is not None:
+        if kept[-1] not in measured:
+            return []
+        others = [o for o in others if o not in measured]
+    return [kept[:-1] + [name] for name in others[:n]]
 
 
 def _retrain(work: Any, problem: Any, names: list[str], train: Any) -> Any:
@@ -97,6 +105,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.ude import evaluate, train
     from physmend.ude.analysis import rank_corrections, training_trajectories
     from physmend.ude.metrics import checkpoint_problem
+    from physmend.ude.warmstart import measured_states
 
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("trial",))
@@ -131,7 +140,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     tried: list[tuple[list[str], Any]] = []
     if bool(mc.retrain):
         work = OmegaConf.merge(work, OmegaConf.from_dotlist([str(o) for o in mc.train_overrides]))
-        sets = [kept] + ([] if mc.keep else rivals(kept, [n for n, _ in ranking], int(mc.rivals)))
+        measured = {problem.model.state_names[i] for _, i in measured_states(problem)}
+        sets = [kept] + ([] if mc.keep else rivals(kept, [n for n, _ in ranking], int(mc.rivals), measured))
         tried = [(names, _retrain(work, problem, names, train)) for names in sets]
         kept, result = best_retrained(tried)
     kept_in_order = [n for n in problem.model.state_names if n in kept]

@@ -151,7 +151,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                    tags={"physmend.kept": ",".join(kept_in_order)}) as run_:
         run_.log_params({"k": k, "kept": ",".join(kept_in_order), "tolerance": mc.tolerance})
         run_.log_metrics({"full.val.rmse": full, **{f"val.rmse.k{kk}": r for kk, r in by_k},
-                          **{f"retrained.val.rmse.{'+'.join(names)}": _val(r) for names, r in tried}})
+                          **{f"retrained.{i}.val.rmse": _val(r) for i, (_, r) in enumerate(tried) if math.isfinite(_val(r))}})
         run_.log_json({"ranking": ranking, "by_k": by_k, "full_val_rmse": full, "kept": kept_in_order,
                        "retrained": [{"corrected": names, "val.rmse": _val(r),
                                       "error": None if not isinstance(r, Exception) else str(r)} for names, r in tried]},

@@ -30,6 +30,9 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "simulate.dtype": ("float64", "float32"),
 }
 
+#: a lower bound meaning "above zero" (an open interval: shown as ``(0, high]``)
+ABOVE_ZERO = math.ulp(0.0)
+
 #: settings whose default ``auto`` has a list of names, not a number, as its alternative
 AUTO_OR_LIST = ("symbolic.parameters", "ude.inputs.parameters")
 
@@ -41,9 +44,9 @@ RANGES: dict[str, tuple[float, float]] = {
         "ude.width", "diagnose.n_windows", "diagnose.smooth_samples", "mask.max_k", "sensitivity.top_k",
         "sensitivity.max_rows", "symbolic.window_samples", "sweep.n_trials", "sweep.group", "sweep.workers",
         "sweep.heartbeat_interval", "sweep.stale_after", "discover.n_trials", "discover.group", "threads")},
-    "diagnose.window_fraction": (1e-9, 1.0),
-    "sensitivity.group_r": (1e-9, 1.0),
-    "symbolic.canonical_r2": (1e-9, 1.0),
+    "diagnose.window_fraction": (ABOVE_ZERO, 1.0),
+    "sensitivity.group_r": (ABOVE_ZERO, 1.0),
+    "symbolic.canonical_r2": (ABOVE_ZERO, 1.0),
     "mask.tolerance": (0.0, math.inf),
     "train.continuity_weight": (0.0, math.inf),
 }
@@ -72,6 +75,8 @@ def _rule(key: str, default: Any) -> str:
     kind = "a whole number" if isinstance(default, int) else "a number"
     if low is None:
         return f"{kind} > 0"
+    if low == ABOVE_ZERO:
+        return f"{kind} in (0, {high:g}]"
     return f"{kind} ≥ {low:g}" if high == math.inf else f"{kind} in [{low:g}, {high:g}]"
 
 

@@ -39,9 +39,9 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     assert rc == 0, err
     sens_id = _last_run_id(out, "sensitivity")
     rc, _, err = _run(user_project, capsys, "sensitivity", mask_id, "sensitivity.group_r=2")
-    assert rc == 2 and "sensitivity.group_r must be a correlation in (0, 1] or null, but got 2" in err
+    assert rc == 2 and "sensitivity.group_r must be a number in (0, 1], but got 2" in err  # checked at compose
     rc, _, err = _run(user_project, capsys, "symbolic", sens_id, "symbolic.window=-5")
-    assert rc == 2 and "symbolic.window must be a number of seconds > 0, but got -5" in err
+    assert rc == 2 and "symbolic.window must be 'auto' or a number > 0, but got -5" in err
     # a Pareto index out of range is a clear error naming the rule
     rc, _, err = _run(user_project, capsys, "symbolic", sens_id, "+symbolic.choice={cart.v: 999}", "symbolic.refit_epochs=0")
     assert rc == 2 and "Pareto index must be in [0," in err and "but got 999" in err

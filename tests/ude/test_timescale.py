@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from omegaconf import OmegaConf
 
-from physmend.config import compose
+from physmend.config import ConfigError, compose
 from physmend.data import load_experiments
 from physmend.modeling import Model, compile_model
 from physmend.problem import Problem, dtype_of
@@ -77,8 +77,8 @@ def test_given_numbers_win_and_impossible_ones_are_clear_errors(tmp_path: Path) 
         resolve_times(compose([*AUTO, "train.step=30"]), problem)
     with pytest.raises(TimeSettingError, match=r"train.segment_length = 3600 is longer than the shortest training record"):
         resolve_times(compose([*AUTO, "train.segment_length=3600"]), problem)
-    with pytest.raises(TimeSettingError, match=r"train.segment_samples must be a number of sampling intervals > 0, but got -3"):
-        resolve_times(compose([*AUTO, "train.segment_samples=-3"]), problem)
+    with pytest.raises(ConfigError, match=r"train.segment_samples must be a whole number ≥ 1, but got -3"):
+        compose([*AUTO, "train.segment_samples=-3"])  # refused when the configuration is composed
 
 
 def test_a_plan_over_the_memory_budget_is_refused_in_one_line(tmp_path: Path) -> None:

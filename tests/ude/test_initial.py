@@ -93,6 +93,17 @@ def test_with_the_physics_complete_the_true_starts_are_found(user_project: Path,
     # position to 1 cm, velocity to 2 cm/s: what 3 mm noise on a 3 s opening allows
     torch.testing.assert_close(u0[:, 0], expected[:, 0], rtol=0, atol=0.01)
     torch.testing.assert_close(u0[:, 1], expected[:, 1], rtol=0, atol=0.02)
+    # about an earlier estimate (a hybrid's previous checkpoint): 3 local rounds instead of 7, same answer
+    calls: list[int] = []
+
+    def counted(sub, start):  # noqa: ANN001, ANN202
+        calls.append(sub.size)
+        return outputs(sub, start)
+
+    again = estimate_initial(counted, batch, problem.compiled.state_names, near=u0 + 0.01)
+    assert len(calls) == 3
+    torch.testing.assert_close(again[:, 0], expected[:, 0], rtol=0, atol=0.01)
+    torch.testing.assert_close(again[:, 1], expected[:, 1], rtol=0, atol=0.02)
 
 
 def test_a_failing_candidate_scores_infinitely_badly_and_a_batch_without_unknowns_is_untouched(

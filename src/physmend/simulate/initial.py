@@ -44,6 +44,8 @@ SHRINK = 2.0
 GRID_UP_TO = 3
 #: refining rounds (one unknown: range/16 → range/1024 at the end)
 ROUNDS = 6
+#: rounds of a search about an earlier estimate (``near``)
+LOCAL_ROUNDS = 3
 
 #: ``solve(rows, u0)``: outputs ``(T, R, k)`` of the model on the batch elements ``rows`` started at ``u0 (R, n)``
 Solve = Callable[[Batch, torch.Tensor], torch.Tensor]
@@ -54,8 +56,14 @@ def has_unknown(batch: Batch) -> bool:
     return any(batch.initial_ranges)
 
 
-def estimate_initial(solve: Solve, batch: Batch, state_names: Sequence[str], *, isolate: bool = True) -> torch.Tensor:
+def estimate_initial(solve: Solve, batch: Batch, state_names: Sequence[str], *, isolate: bool = True,
+                     near: torch.Tensor | None = None) -> torch.Tensor:
     """``batch.u0 (B, n)`` with every declared-unknown initial value replaced by its estimate.
+
+    ``near (B, n)``: an earlier estimate of a model that has changed little since (the same hybrid
+    at its previous checkpoint): the search skips the whole-range round and refines about it over
+    :data:`LOCAL_ROUNDS` rounds, the last rounds of a full search (it follows an estimate that moved
+by up to about 1/30 of the range since).
 
     Experiments with nothing unknown keep their ``u0`` (and cost nothing). A candidate whose
     simulation fails scores infinitely badly (``isolate``: the failed solve is repeated per
@@ -75,8 +83,14 @@ def estimate_initial(solve: Solve, batch: Batch, state_names: Sequence[str], *, 
     # same number of candidates in every call, whatever failed (stacked callers rely on the layout)
     kept: dict[int, list[torch.Tensor]] = {b: [u0[b].clone()] * KEEP for b in todo}
     spacing: dict[int, torch.Tensor] = {}
+    first = 0
+    if near is not None:
+        first = ROUNDS + 1 - LOCAL_ROUNDS
+        for b in todo:
+            kept[b] = [near[b].clone().to(u0.dtype)] * KEEP
+            spacing[b] = _first_round(unknown[b])[1] / SHRINK ** (first - 1)  # as a full search has it by then
     with torch.no_grad():
-        for r in range(ROUNDS + 1):
+        for r in range(first, ROUNDS + 1):
             rows: list[int] = []
             starts: list[torch.Tensor] = []
             for b in todo:

@@ -113,6 +113,9 @@ class HybridModel(nn.Module):
         super().__init__()
         self.compiled = compiled
         self.spec = spec
+        #: experiment IDs -> this model's last estimates of their unknown initial values ``(B, n)``
+        #: (:func:`physmend.ude.metrics.hybrid_states` starts the next search about them)
+        self.initial_estimates: dict[tuple[str, ...], torch.Tensor] = {}
         names = compiled.state_names
         self.corrected_idx = [names.index(n) for n in spec.corrected]
         self.state_idx = [names.index(n) for n in spec.in_states]

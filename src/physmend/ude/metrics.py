@@ -14,7 +14,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch
-from physmend.simulate.initial import estimate_initial
+from physmend.simulate.initial import estimate_initial, has_unknown
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.reference import _sim_opts, _train_mask, _val_mask, held_out_apart, simulate_with
@@ -140,7 +140,11 @@ def hybrid_states(hybrid: HybridModel, problem: Problem, batch: Batch, sim: dict
 
     def solve(sub: Batch) -> torch.Tensor:
         p = hybrid.parameters_for(sub.params)
-        u0 = estimate_initial(outputs, sub, names)
+        # this hybrid's estimates at its previous checkpoint, if any, are where the search starts
+        key = tuple(sub.ids)
+        u0 = estimate_initial(outputs, sub, names, near=hybrid.initial_estimates.get(key))
+        if has_unknown(sub):
+            hybrid.initial_estimates[key] = u0
         return simulate_with(guarded(hybrid.rhs(p), limits, sub.ids, names), sub, u0, sim)
 
     try:

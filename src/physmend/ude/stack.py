@@ -92,6 +92,7 @@ class _Stack:
         self.pinned, self.lo, self.hi = pinned_starts(ref.batch, plan, problem.compiled.state_names)
         self.state_scale = ref.states[tm].std(0).clamp_min(1e-3)
         self.box = members[0].hybrid.spec.box(BOX_MARGIN, problem.dtype)  # one reference: one range for all
+        self.initial_estimates: dict[tuple[str, ...], torch.Tensor] = {}  # as HybridModel.initial_estimates
         self.out_std = _output_spread(ref.batch.obs[tm])
         self.params_seg = ref.batch.params[plan.exp_index]
         self.has_next = plan.next_of >= 0
@@ -354,7 +355,11 @@ class _Stack:
 
         # declared-unknown initial values: each model's own estimates (a failed candidate solve is
         # raised: the caller then evaluates each model alone, where failures are isolated)
-        u0 = estimate_initial(outputs, batch_m, self.problem.compiled.state_names, isolate=False)
+        key = tuple(names)
+        u0 = estimate_initial(outputs, batch_m, self.problem.compiled.state_names, isolate=False,
+                              near=self.initial_estimates.get(key))
+        if any(batch_m.initial_ranges):
+            self.initial_estimates[key] = u0  # the next checkpoint of these models starts about them
         return outputs(batch_m, u0)  # (T, M·B, k)
 
     def _evaluate_alone(self, position: int, sim: dict[str, Any], problem: Problem

@@ -77,9 +77,29 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _split_run_id(args: argparse.Namespace) -> None:
-    """``physmend STAGE RUN_ID k=v``: argparse hands RUN_ID to the overrides; take it back."""
-    if getattr(args, "run_id", "-") is None and args.overrides and "=" not in args.overrides[0]:
-        args.run_id = args.overrides.pop(0)
+    """``physmend STAGE [--config-dir D] k=v RUN_ID`` in any order: argparse hands RUN_ID to the
+    overrides when it comes first or after an option; take it back (the first word without '=')."""
+    if getattr(args, "run_id", "-") is None:
+        words = [i for i, o in enumerate(args.overrides) if "=" not in o]
+        if words:
+            args.run_id = args.overrides.pop(words[0])
+
+
+def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command line: options, overrides and a stage's run ID in any order (exits 2 on a bad one)."""
+    # positionals after an option (``RUN_ID --config-dir D k=v``) come back unparsed: they are overrides
+    args, extra = parser.parse_known_args(argv)
+    stray = [e for e in extra if e.startswith("-") or not hasattr(args, "overrides")]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = list(args.overrides) + extra
+    if args.command is not None:
+        _split_run_id(args)
+        bad = [o for o in args.overrides if "=" not in o]
+        if bad:
+            parser.error(f"overrides must look like key=value, but got {bad}")
+    return args
 
 
 def _compose(args: argparse.Namespace):  # noqa: ANN202
@@ -111,7 +131,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # keep stage output readable
     parser = _parser()
-    args = parser.parse_args(argv)
+    args = parse(parser, argv)
     if args.version:
         from physmend import __version__
 
@@ -120,10 +140,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    _split_run_id(args)
-    bad = [o for o in args.overrides if "=" not in o]
-    if bad:
-        parser.error(f"overrides must look like key=value, but got {bad}")
     from physmend.errors import USER_ERRORS
 
     try:

@@ -97,5 +97,7 @@ def abs_bars(text: str) -> str:
 
 
 def n_constants(expr: sympy.Expr) -> int:
-    """Number of fitted (floating-point) constants in ``expr``; at least 1."""
-    return max(1, len(expr.atoms(sympy.Float)))
+    """Number of fitted (floating-point) constants in ``expr``; at least 1. A value that appears
+    again, up to its sign, is one constant (``-c·T⁴ + c·T_room⁴`` has one: ``c·(T⁴ − T_room⁴)``
+    expanded)."""
+    return max(1, len({abs(float(f)) for f in expr.atoms(sympy.Float)}))

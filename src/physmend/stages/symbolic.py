@@ -48,14 +48,27 @@ def equation_unit(model: Any, state: str) -> str:
 
 
 def name_constants(expr: sp.Expr, prefix: str = "c") -> tuple[sp.Expr, dict[str, float]]:
-    """Replace the floating-point constants of ``expr`` by symbols ``c1, c2 …``; returns both."""
+    """Replace the floating-point constants of ``expr`` by symbols ``c1, c2 …``; returns both.
+
+    A value that appears again up to its sign is one constant (``-c·T⁴ + c·T_room⁴``: sympy expands
+    ``c·(T⁴ − T_room⁴)``), written back as its common factor: ``c1·(T⁴ − T_room⁴)``."""
     consts: dict[str, float] = {}
-    mapping: dict[sp.Basic, sp.Symbol] = {}
-    for k, f in enumerate(sorted(expr.atoms(sp.Float), key=lambda a: (-abs(float(a)), float(a))), 1):
-        name = f"{prefix}{k}"
-        mapping[f] = sp.Symbol(name)
-        consts[name] = float(f)
-    return expr.xreplace(mapping), consts
+    mapping: dict[sp.Basic, sp.Expr] = {}
+    by_size: dict[float, sp.Symbol] = {}
+    for f in sorted(expr.atoms(sp.Float), key=lambda a: (-abs(float(a)), float(a))):
+        size = abs(float(f))
+        if size in by_size:
+            sym = by_size[size]
+            mapping[f] = sym if float(f) == consts[sym.name] else -sym
+            continue
+        sym = sp.Symbol(f"{prefix}{len(by_size) + 1}")
+        by_size[size] = sym
+        mapping[f] = sym
+        consts[sym.name] = float(f)
+    named = expr.xreplace(mapping)
+    if len(by_size) < len(mapping):
+        named = sp.factor_terms(named)
+    return named, consts
 
 
 def canonical_form(expr: sp.Expr, columns: dict[str, np.ndarray], units: dict[str, str], min_r2: float) -> tuple[sp.Expr, str, float] | None:
@@ -185,17 +198,19 @@ def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iteration
 
 def estimate_shifts(hybrid: Any, problem: Any) -> list[str]:
     """``name declared → estimated (share of its range)`` for each jointly estimated parameter; one
-    that moved far (:func:`physmend.ude.analysis.moved_far`) is flagged."""
-    from physmend.ude.analysis import ABSORBED_SHARE
+    that moved far (:func:`physmend.ude.analysis.moved_far`) is flagged. Every estimate's change is
+    in the formula's target (:func:`physmend.ude.analysis.handed_back`)."""
+    from physmend.ude.analysis import moved_far
 
     declared = {v.name: v for v in problem.model.parameters}
+    far = set(moved_far(hybrid, problem))
     out = []
     for name, value in hybrid.estimates().items():
         var = declared[name]
         lo, hi = var.bounds or (value, value)
         share = (value - float(var.value)) / (hi - lo) if hi > lo else 0.0
-        flag = (" — moved far: taken to have absorbed part of the missing physics, handed back to the fitted term"
-                if abs(share) > ABSORBED_SHARE else "")
+        flag = (" — moved far: it has probably absorbed part of the missing physics (the formula carries it: "
+                "the proposed model keeps the declared value)" if name in far else "")
         out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({share:+.0%} of its range){flag}")
     return out
 
@@ -418,7 +433,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     lines.append(refit_note + ".")
     moved = estimate_shifts(hybrid, problem)
     if moved:
-        lines.append("Jointly estimated parameters: " + "; ".join(moved) + ".")
+        lines.append("Jointly estimated parameters: " + "; ".join(moved) + " (what they changed is in the formulas; "
+                     "the proposed model keeps the declared values).")
     if metrics:
         lines.append(f"Corrected model (no network): validation RMSE {metrics.get('val.rmse', float('nan')):.4g}.")
     print("\n".join(lines))

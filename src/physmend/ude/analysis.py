@@ -26,9 +26,9 @@ class HybridTrajectories:
     ``u (N, n_states)``, ``x (N, n_inputs)``, ``p (N, n_params)``, ``du (N, n_states)`` the
     hybrid's derivatives, ``corr (N, n_corrected)`` the network's corrections, ``z (N, n_features)``
     the normalised network inputs, ``exp (N,)`` batch index, ``t (N,)`` time (s);
-    ``added (N, n_corrected)``: the correction plus what estimates that moved far from their
-    declared values (:func:`moved_far`) changed in each corrected equation,
-    ``f(u, x, p_estimated) − f(u, x, p_handed_back)`` (state unit / s).
+    ``added (N, n_corrected)``: the correction plus what the jointly estimated parameters changed
+    in each corrected equation against their declared values, ``f(u, x, p_estimated) − f(u, x,
+    p_declared)`` (state unit / s; see :func:`handed_back`).
     """
 
     u: torch.Tensor
@@ -56,7 +56,7 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
         corr = hybrid.corrections(states, x, p)
         z = (hybrid.features(states, x, p) - hybrid.mean) / hybrid.std
         idx = hybrid.corrected_idx
-        kept = handed_back(hybrid, problem, batch.params)  # estimates that moved far go back to their declared values
+        kept = handed_back(hybrid, problem, batch.params)  # every estimate back at its declared value
         moved = (problem.compiled.bind(p)(states, x) - problem.compiled.bind(kept)(states, x))[..., idx]
         added = corr + moved
     tt = batch.t[:, None].expand_as(mask)
@@ -67,7 +67,7 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
 
 ABSORBED_SHARE = 0.25
 """An estimate that moved more than this share of its declared range from its declared value is
-taken to have absorbed part of the missing physics (see :func:`handed_back`)."""
+flagged in the report: it has probably absorbed part of the missing physics (:func:`moved_far`)."""
 
 
 def moved_far(hybrid: HybridModel, problem: Problem) -> list[str]:
@@ -83,13 +83,16 @@ def moved_far(hybrid: HybridModel, problem: Problem) -> list[str]:
 
 
 def handed_back(hybrid: HybridModel, problem: Problem, params: torch.Tensor) -> torch.Tensor:
-    """``params (B, n_params)`` with the estimates, except those that moved far (:func:`moved_far`),
-    which keep their declared values: what such an estimate changed is handed back to the corrections."""
-    p = hybrid.parameters_for(params).detach().clone()
-    for name in moved_far(hybrid, problem):
-        j = problem.compiled.parameter_names.index(name)
-        p[:, j] = params[:, j]
-    return p
+    """``params (B, n_params)``: every parameter at its declared value, estimates included.
+
+    The proposed model is the model as written plus the formulas, so a formula must carry what
+    the estimates changed in its equation as well as the network's correction: an estimate may
+    have traded part of the missing physics away (a conductance that grew to carry a radiation
+    loss), and a formula fitted on top of it, then used with the declared value, would miss
+    exactly that part — however small the move. What each estimate changed is therefore handed
+    back to the symbolic target and to the recorded mismatch the formulas are judged against."""
+    del hybrid, problem
+    return params.detach().clone()
 
 
 def rank_corrections(hybrid: HybridModel, traj: HybridTrajectories) -> list[tuple[str, float]]:

@@ -79,8 +79,8 @@ def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list
     if not wanted:
         return None
     window = max(1, int(round(float(window_s) / dt)))
-    # the estimates, but those that moved far back at their declared values (they may have absorbed
-    # part of the missing physics, which then shows in the mismatch) (E, n_params)
+    # every estimate back at its declared value: the proposed model is the model as written plus the
+    # formulas, so what an estimate changed (perhaps absorbed missing physics) shows in the mismatch (E, n_params)
     from physmend.ude.analysis import handed_back
 
     p = handed_back(hybrid, problem, batch.params[forced.exp_index])

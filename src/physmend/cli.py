@@ -126,10 +126,42 @@ def _ui(args: argparse.Namespace) -> int:
     return subprocess.call(cmd)
 
 
+#: what a store library says when the disk under it is full or cannot be written (sqlite, via MLflow)
+_DISK_WORDS = ("database or disk is full", "disk i/o error", "attempt to write a readonly database")
+
+
+def disk_trouble(exc: BaseException) -> str | None:
+    """One line for a full or unwritable disk anywhere in ``exc``'s chain (a store's SQL error, an
+    artifact copy, a figure), naming the file where known; None when the error is something else."""
+    import errno
+
+    seen: set[int] = set()
+    todo: list[BaseException | None] = [exc]
+    while todo:
+        e = todo.pop()
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS):
+            where = f" writing {e.filename!r}" if e.filename else ""
+            return f"{e.strerror or e}{where}"
+        text = str(e).lower()
+        word = next((w for w in _DISK_WORDS if w in text), None)
+        if word is not None:
+            return f"the tracking store says: {word}"
+        todo += [e.__cause__, e.__context__]
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     import os
 
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # keep stage output readable
+    import logging
+
+    # MLflow logs every store error with its SQL and stack before raising it; physmend reports the
+    # error as one line (tracking.store, disk_trouble) — and the table-creation notices are noise
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
     parser = _parser()
     args = parse(parser, argv)
     if args.version:
@@ -180,6 +212,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"physmend {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:
+        why = disk_trouble(exc)
+        if why is None:
+            raise
+        from physmend.redact import redact
+
+        print(redact(f"physmend {args.command}: error: {why} — the disk under the working directory or the store "
+                     f"(tracking.uri) is full or read-only; free space or point them elsewhere (runs it could not "
+                     f"finish are left FAILED or RUNNING, nothing else is changed)"), file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -21,8 +21,10 @@ from physmend.ude.reference import _sim_opts, _train_mask, _val_mask, held_out_a
 
 
 def _pooled(err: torch.Tensor, mask: torch.Tensor) -> float:
+    """RMSE of ``err`` where ``mask``; NaN entries (not measured) are left out, an infinite one
+    (measured, but the model's output is not finite) makes it infinite."""
     e = err[mask]
-    e = e[torch.isfinite(e)]
+    e = e[~torch.isnan(e)]
     return float(e.pow(2).mean().sqrt()) if e.numel() else float("nan")
 
 
@@ -38,7 +40,10 @@ def evaluate(hybrid: HybridModel, problem: Problem, cfg: Any | None = None, *, s
 
 def metrics_of(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, float]:
     """Metrics (see :func:`evaluate`) of whole-trajectory outputs ``y (T, B, k)`` on ``batch``."""
-    err = y - batch.obs  # (T, B, k), NaN where not measured
+    measured = torch.isfinite(batch.obs)
+    # (T, B, k): NaN where not measured; inf where measured but the model's output is not finite
+    # (a hybrid that diverged part-way is no fit over the rest of its record)
+    err = torch.where(measured & ~torch.isfinite(y), torch.inf, y - batch.obs)
     units = {problem.model.units.get(o, "") for o in problem.model.output_names}
     if len(units) > 1:
         scale = torch.nan_to_num(batch.obs[_train_mask(problem, batch)], nan=0.0).std(0).clamp_min(1e-12)
@@ -52,7 +57,6 @@ def metrics_of(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, flo
     if bool(test.any()):
         # a test experiment whose outputs left the finite range where measured has no RMSE: counted
         # in test.failed, and test.rmse is NaN rather than the RMSE of the others
-        measured = torch.isfinite(batch.obs)
         sq = torch.where(measured, scaled, 0.0).pow(2).sum(dim=(0, 2))  # (B,)
         off = (~torch.isfinite(sq) | (~torch.isfinite(y) & measured).any(-1).any(0)) & is_test
         metrics["test.failed"] = float(off.sum())
@@ -60,10 +64,10 @@ def metrics_of(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, flo
     for b, e in enumerate(problem.experiments):
         for j, out in enumerate(problem.model.output_names):
             col = err[:, b, j]
-            col = col[torch.isfinite(col)]
+            col = col[~torch.isnan(col)]
             metrics[f"rmse.{e.id}.{out}"] = float(col.pow(2).mean().sqrt()) if col.numel() else float("nan")
-    if not math.isfinite(metrics["val.rmse"]):
-        raise TrainingDiverged("validation RMSE is not finite (the hybrid trajectory left the finite range)")
+    if not math.isfinite(metrics["val.rmse"]) or math.isinf(metrics["train.rmse"]):
+        raise TrainingDiverged("validation or training RMSE is not finite (the hybrid trajectory left the finite range)")
     return metrics
 
 
@@ -85,17 +89,19 @@ def guarded(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
             limits: tuple[torch.Tensor, torch.Tensor] | None, ids: list[str], state_names: list[str]
             ) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
     """``rhs(u (B, n), x)`` that raises :class:`SimulationError` (naming the experiment ``ids[b]``
-    and the state) when a state leaves ``limits = (lo, hi)`` (each ``(n,)``; None: ``rhs`` itself)."""
-    if limits is None:
-        return rhs
-    lo, hi = limits
+    and the state) when a state leaves ``limits = (lo, hi)`` or becomes NaN (``lo``, ``hi`` each ``(n,)``; None: only NaN)."""
+    # without limits only a NaN state stops the solve (an adaptive solver would carry it to the end)
+    lo, hi = limits if limits is not None else (torch.tensor(-torch.inf), torch.tensor(torch.inf))
 
     def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        out = (u < lo) | (u > hi)
+        out = (u < lo) | (u > hi) | torch.isnan(u)
         if bool(out.any()):
             b, j = (int(v) for v in torch.nonzero(out.reshape(-1, u.shape[-1]))[0])
             flat = u.reshape(-1, u.shape[-1])
             value = float(flat[b, j])
+            if value != value:
+                raise SimulationError(f"the hybrid diverged in experiment {ids[b % len(ids)]!r}: state "
+                                      f"{state_names[j]!r} is NaN")
             bound = float(hi[j] if value > hi[j] else lo[j])
             raise SimulationError(
                 f"the hybrid diverged in experiment {ids[b % len(ids)]!r}: state {state_names[j]!r} reached "

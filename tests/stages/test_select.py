@@ -158,3 +158,7 @@ def test_mask_rivals_and_the_best_retrained_set() -> None:
     assert best_retrained([(["tank2.h"], ranked), (["tank1.h"], boom)]) == (["tank2.h"], ranked)
     with pytest.raises(TrainingDiverged, match="non-finite"):
         best_retrained([(["tank2.h"], boom), (["tank1.h"], TrainingDiverged("other"))])
+    # a smaller set within the tolerance of the best wins; outside it, the best
+    both, alone = SimpleNamespace(val_rmse=0.0100), SimpleNamespace(val_rmse=0.0105)
+    assert best_retrained([(["tank1.h", "tank2.h"], both), (["tank1.h"], alone)], 0.1) == (["tank1.h"], alone)
+    assert best_retrained([(["tank1.h", "tank2.h"], both), (["tank1.h"], alone)], 0.01) == (["tank1.h", "tank2.h"], both)

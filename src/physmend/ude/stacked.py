@@ -62,7 +62,7 @@ from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.reference import Reference, _sim_opts
 from physmend.ude.schedule import _lr_schedule
-from physmend.ude.shooting import Shooting, pinned_starts, segments_finite
+from physmend.ude.shooting import BOX_MARGIN, Shooting, pinned_starts, segments_finite
 from physmend.ude.warmstart import Forced, recall_derived, remember_derived
 
 
@@ -198,9 +198,10 @@ def _drop_unstable_warm_starts(members: list[_Member], initial: list[dict[str, A
     pinned, _, _ = pinned_starts(ref.batch, plan, members[0].hybrid.compiled.state_names)
     fixed_first = ref.batch.u0[plan.exp_index]
     params_seg = ref.batch.params[plan.exp_index]
+    box = members[0].hybrid.spec.box(BOX_MARGIN, ref.batch.t.dtype)  # as the stack trains (states held in it)
     for mem, state in zip(members, initial):
         rhs = mem.hybrid.rhs(mem.hybrid.parameters_for(params_seg))
-        if not segments_finite(rhs, torch.where(pinned, fixed_first, mem.seg0), plan):
+        if not segments_finite(rhs, torch.where(pinned, fixed_first, mem.seg0), plan, box):
             mem.hybrid.load_state_dict(state)
             mem.forced, mem.warm_key = None, None
             mem.lrs = _lr_schedule(mem.cfg, warm=False)
@@ -243,7 +244,9 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
                                     "fit_loss": float("nan") if fit is None else float(fit[pos]),
                                     "val.rmse": math.inf, "train.rmse": math.inf})
                 mem.since_best += 1
-                if patience > 0 and mem.since_best >= patience:
+                # patience runs out only after a good checkpoint: a start that diverges (e.g. a warm
+                # start out of its data) is what training is there to repair
+                if patience > 0 and mem.best is not None and mem.since_best >= patience:
                     mem.done = True
                 continue
             if isinstance(outcome, BaseException):

@@ -71,8 +71,10 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     pinned, lo, hi = pinned_starts(ref.batch, plan, problem.compiled.state_names)
     params_seg = ref.batch.params[plan.exp_index]
     box = hybrid.spec.box(BOX_MARGIN, problem.dtype)
+    # judged as training takes the segments: states held in the box (a warm start that sends one
+    # segment of many below zero, where the model as written explodes, is still a start)
     if forced is not None and not segments_finite(hybrid.rhs(hybrid.parameters_for(params_seg)),
-                                                  torch.where(pinned, fixed_first, seg0), plan):
+                                                  torch.where(pinned, fixed_first, seg0), plan, box):
         hybrid.load_state_dict(initial)  # the warm-started network leaves the finite range: not a start
         forced = None
     if _chain(tc) and forced is not None:
@@ -113,7 +115,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
             history.append({"epoch": float(epoch), "loss": loss, "fit_loss": fit, "val.rmse": math.inf,
                             "train.rmse": math.inf})
             since_best += 1
-            return patience > 0 and since_best >= patience
+            # patience runs out only after a good checkpoint: a diverging start is for training to repair
+            return patience > 0 and best is not None and since_best >= patience
         row = {"epoch": float(epoch), "loss": loss, "fit_loss": fit,
                **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
         history.append(row)

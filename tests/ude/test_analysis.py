@@ -81,8 +81,9 @@ def test_the_symbolic_target_hands_back_what_an_estimate_absorbed(user_project: 
     """A jointly estimated damper coefficient moved from its declared 0.4 to 2.4 N·s/m (40 % of its
     range 0–5: it may have absorbed missing physics), and a network that adds nothing: the target of
     the velocity equation (N, the units of ``mass·der(v) = …``) is the whole change of that equation
-    against the model as written, −(2.4 − 0.4)·v. A small move (to 0.9, 10 %) is handed back too:
-    the proposed model keeps the declared value, so the formula must carry −(0.9 − 0.4)·v."""
+    against the model as written, −(2.4 − 0.4)·v. A small move (to 0.9, 10 %) with a network
+    correction far larger than what it changed is calibration: kept, not handed back; the same move
+    with no correction to speak of has absorbed the missing term: handed back."""
     from physmend.ude.analysis import equation_corrections
 
     monkeypatch.chdir(user_project)
@@ -103,6 +104,13 @@ def test_the_symbolic_target_hands_back_what_an_estimate_absorbed(user_project: 
     with torch.no_grad():
         hybrid.est_raw.copy_(torch.logit((torch.tensor([0.9], dtype=lo.dtype) - lo) / (hi - lo)))
     traj = training_trajectories(hybrid, problem, cfg)
+    assert traj.handed == ["damper.c"]  # no correction at all: the move is all there is
     target = equation_corrections(hybrid, problem, traj, ["cart.v"])[:, 0]
     v = traj.u[:, problem.model.state_names.index("cart.v")]
     assert torch.allclose(target, -0.5 * v, atol=1e-9)
+    with torch.no_grad():  # a network correction ~100x what the move changed: calibration, kept
+        hybrid.net[-1].bias.fill_(50.0)
+    traj = training_trajectories(hybrid, problem, cfg)
+    assert traj.handed == [] and bool(traj.corr.abs().min() > 0)
+    assert torch.equal(traj.added, traj.corr)  # the target is the network's correction alone
+

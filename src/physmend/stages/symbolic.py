@@ -196,21 +196,18 @@ def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iteration
     return fitted, result
 
 
-def estimate_shifts(hybrid: Any, problem: Any) -> list[str]:
+def estimate_shifts(hybrid: Any, problem: Any, handed: list[str]) -> list[str]:
     """``name declared → estimated (share of its range)`` for each jointly estimated parameter; one
-    that moved far (:func:`physmend.ude.analysis.moved_far`) is flagged. Every estimate's change is
-    in the formula's target (:func:`physmend.ude.analysis.handed_back`)."""
-    from physmend.ude.analysis import moved_far
-
+    taken to have absorbed missing physics (``handed``, :func:`physmend.ude.analysis.absorbed`) is
+    flagged: its change is in the formula's target."""
     declared = {v.name: v for v in problem.model.parameters}
-    far = set(moved_far(hybrid, problem))
     out = []
     for name, value in hybrid.estimates().items():
         var = declared[name]
         lo, hi = var.bounds or (value, value)
         share = (value - float(var.value)) / (hi - lo) if hi > lo else 0.0
-        flag = (" — moved far: it has probably absorbed part of the missing physics (the formula carries it: "
-                "the proposed model keeps the declared value)" if name in far else "")
+        flag = (" — it changed its equation as much as a correction: taken to have absorbed part of the missing "
+                "physics, handed back to the formula" if name in handed else " — calibration, left out of the formula")
         out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({share:+.0%} of its range){flag}")
     return out
 
@@ -344,7 +341,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     if select == "recorded":
         from physmend.ude.rates import recorded_rates
 
-        rates = recorded_rates(hybrid, problem, work, kept, float(window))
+        rates = recorded_rates(hybrid, problem, work, kept, float(window), traj.handed)
         if rates is not None and set(rates.targets) != set(kept):
             rates = None  # some kept equation's state is not measured: the network decides
     recorded_scores: dict[str, list[tuple[float, float]]] = {}
@@ -431,10 +428,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         consts = ", ".join(f"{k} = {v:.4g}" for k, v in c.constants.items())
         lines.append(f"{c.state}: + {c.term}   ({consts})")
     lines.append(refit_note + ".")
-    moved = estimate_shifts(hybrid, problem)
+    moved = estimate_shifts(hybrid, problem, traj.handed)
     if moved:
-        lines.append("Jointly estimated parameters: " + "; ".join(moved) + " (what they changed is in the formulas; "
-                     "the proposed model keeps the declared values).")
+        lines.append("Jointly estimated parameters (the proposed model keeps the declared values): " + "; ".join(moved) + ".")
     if metrics:
         lines.append(f"Corrected model (no network): validation RMSE {metrics.get('val.rmse', float('nan')):.4g}.")
     print("\n".join(lines))

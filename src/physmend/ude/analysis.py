@@ -7,7 +7,7 @@ validation or test data. Imports ``hybrid``, ``reference``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -26,9 +26,9 @@ class HybridTrajectories:
     ``u (N, n_states)``, ``x (N, n_inputs)``, ``p (N, n_params)``, ``du (N, n_states)`` the
     hybrid's derivatives, ``corr (N, n_corrected)`` the network's corrections, ``z (N, n_features)``
     the normalised network inputs, ``exp (N,)`` batch index, ``t (N,)`` time (s);
-    ``added (N, n_corrected)``: the correction plus what the jointly estimated parameters changed
-    in each corrected equation against their declared values, ``f(u, x, p_estimated) − f(u, x,
-    p_declared)`` (state unit / s; see :func:`handed_back`).
+    ``added (N, n_corrected)``: the correction plus what the estimates ``handed`` (those taken to
+    have absorbed missing physics, :func:`absorbed`) changed in each corrected equation,
+    ``f(u, x, p_estimated) − f(u, x, p_handed_back)`` (state unit / s; see :func:`handed_back`).
     """
 
     u: torch.Tensor
@@ -41,6 +41,7 @@ class HybridTrajectories:
     t: torch.Tensor
     batch: Batch
     added: torch.Tensor | None = None
+    handed: list[str] = field(default_factory=list)
 
 
 def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> HybridTrajectories:
@@ -56,18 +57,21 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
         corr = hybrid.corrections(states, x, p)
         z = (hybrid.features(states, x, p) - hybrid.mean) / hybrid.std
         idx = hybrid.corrected_idx
-        kept = handed_back(hybrid, problem, batch.params)  # every estimate back at its declared value
+        handed = absorbed(hybrid, problem, states[mask], x[mask], p[None].expand_as(pp)[mask],
+                          batch.params[None].expand(states.shape[0], -1, -1)[mask], corr[mask])
+        kept = handed_back(hybrid, problem, batch.params, handed)
         moved = (problem.compiled.bind(p)(states, x) - problem.compiled.bind(kept)(states, x))[..., idx]
         added = corr + moved
     tt = batch.t[:, None].expand_as(mask)
     ee = torch.arange(batch.size)[None, :].expand_as(mask)
     return HybridTrajectories(states[mask], x[mask], pp[mask], du[mask], corr[mask], z[mask], ee[mask], tt[mask], batch,
-                              added[mask])
+                              added[mask], handed)
 
 
 ABSORBED_SHARE = 0.25
-"""An estimate that moved more than this share of its declared range from its declared value is
-flagged in the report: it has probably absorbed part of the missing physics (:func:`moved_far`)."""
+"""An estimate has absorbed part of the missing physics when it moved more than this share of its
+declared range from its declared value, or when what its move changed in a corrected equation is
+at least this share of the network's correction there (:func:`absorbed`)."""
 
 
 def moved_far(hybrid: HybridModel, problem: Problem) -> list[str]:
@@ -82,17 +86,45 @@ def moved_far(hybrid: HybridModel, problem: Problem) -> list[str]:
     return out
 
 
-def handed_back(hybrid: HybridModel, problem: Problem, params: torch.Tensor) -> torch.Tensor:
-    """``params (B, n_params)``: every parameter at its declared value, estimates included.
+def absorbed(hybrid: HybridModel, problem: Problem, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor,
+             declared: torch.Tensor, corr: torch.Tensor) -> list[str]:
+    """Estimates taken to have absorbed part of the missing physics, along ``N`` training samples:
+    states ``u (N, n)``, inputs ``x (N, m)``, estimated and declared parameters ``p``, ``declared
+    (N, n_params)``, the network's corrections ``corr (N, n_corrected)``.
 
-    The proposed model is the model as written plus the formulas, so a formula must carry what
-    the estimates changed in its equation as well as the network's correction: an estimate may
-    have traded part of the missing physics away (a conductance that grew to carry a radiation
-    loss), and a formula fitted on top of it, then used with the declared value, would miss
-    exactly that part — however small the move. What each estimate changed is therefore handed
-    back to the symbolic target and to the recorded mismatch the formulas are judged against."""
-    del hybrid, problem
-    return params.detach().clone()
+    One that moved far (:func:`moved_far`), or whose move changed some corrected equation by at
+    least :data:`ABSORBED_SHARE` of the network's correction there (RMS; a conductance that grew to
+    carry a radiation loss changes its equation by more than the network corrects). A smaller
+    change is calibration, not missing physics: the formula is not asked to carry it (it may
+    depend on states the formula does not see)."""
+    out = set(moved_far(hybrid, problem))
+    names = problem.compiled.parameter_names
+    idx = hybrid.corrected_idx
+    f = problem.compiled.bind
+    with torch.no_grad():
+        base = f(p)(u, x)[..., idx]
+        size = corr.pow(2).nanmean(0).sqrt()  # (n_corrected,)
+        for name in hybrid.estimates():
+            j = names.index(name)
+            back = p.clone()
+            back[:, j] = declared[:, j]
+            change = (base - f(back)(u, x)[..., idx]).pow(2).nanmean(0).sqrt()
+            if bool((change >= ABSORBED_SHARE * size).any()):
+                out.add(name)
+    return [n for n in names if n in out]
+
+
+def handed_back(hybrid: HybridModel, problem: Problem, params: torch.Tensor, names: list[str]) -> torch.Tensor:
+    """``params (B, n_params)`` with the estimates, except ``names`` (:func:`absorbed`), which keep
+    their declared values: what such an estimate changed is handed back to the corrections — to the
+    symbolic target and to the recorded mismatch the formulas are judged against. (The proposed
+    model is the model as written plus the formulas: a formula fitted on top of an estimate that
+    carried part of the missing term would miss exactly that part.)"""
+    p = hybrid.parameters_for(params).detach().clone()
+    for name in names:
+        j = problem.compiled.parameter_names.index(name)
+        p[:, j] = params[:, j]
+    return p
 
 
 def rank_corrections(hybrid: HybridModel, traj: HybridTrajectories) -> list[tuple[str, float]]:

@@ -62,9 +62,11 @@ class RecordedRates:
         return alpha, mse, r2
 
 
-def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list[str], window_s: float) -> RecordedRates | None:
+def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list[str], window_s: float,
+                   handed: list[str] = ()) -> RecordedRates | None:
     """The recorded mismatch of each equation in ``states`` whose state is measured, averaged over
-    windows of ``window_s`` seconds; None when no state of ``states`` is measured."""
+    windows of ``window_s`` seconds, with the estimates ``handed`` back at their declared values
+    (:func:`physmend.ude.analysis.absorbed`); None when no state of ``states`` is measured."""
     from physmend.modeling.compile import lambdify_torch
 
     from physmend.ude.timescale import resolved
@@ -79,11 +81,11 @@ def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list
     if not wanted:
         return None
     window = max(1, int(round(float(window_s) / dt)))
-    # every estimate back at its declared value: the proposed model is the model as written plus the
-    # formulas, so what an estimate changed (perhaps absorbed missing physics) shows in the mismatch (E, n_params)
+    # the estimates, but those that absorbed missing physics back at their declared values (what they
+    # changed then shows in the mismatch, as in the symbolic target) (E, n_params)
     from physmend.ude.analysis import handed_back
 
-    p = handed_back(hybrid, problem, batch.params[forced.exp_index])
+    p = handed_back(hybrid, problem, batch.params[forced.exp_index], list(handed))
     with torch.no_grad():
         physics = problem.compiled.bind(p)(forced.states, forced.inputs)  # (G, E, n)
     psyms = [v.symbol for v in problem.model.parameters]

@@ -57,7 +57,7 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
         corr = hybrid.corrections(states, x, p)
         z = (hybrid.features(states, x, p) - hybrid.mean) / hybrid.std
         idx = hybrid.corrected_idx
-        handed = absorbed(hybrid, problem, states[mask], x[mask], p[None].expand_as(pp)[mask],
+        handed = absorbed(hybrid, problem, states[mask], x[mask], pp[mask],
                           batch.params[None].expand(states.shape[0], -1, -1)[mask], corr[mask])
         kept = handed_back(hybrid, problem, batch.params, handed)
         moved = (problem.compiled.bind(p)(states, x) - problem.compiled.bind(kept)(states, x))[..., idx]

@@ -206,8 +206,9 @@ def estimate_shifts(hybrid: Any, problem: Any, handed: list[str]) -> list[str]:
         var = declared[name]
         lo, hi = var.bounds or (value, value)
         share = (value - float(var.value)) / (hi - lo) if hi > lo else 0.0
-        flag = (" — it changed its equation as much as a correction: taken to have absorbed part of the missing "
-                "physics, handed back to the formula" if name in handed else " — calibration, left out of the formula")
+        flag = (" — taken to have absorbed part of the missing physics (it moved over a quarter of its range, or "
+                "changed a corrected equation by a quarter of the network's correction): handed back to the formula"
+                if name in handed else " — calibration, left out of the formula")
         out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({share:+.0%} of its range){flag}")
     return out
 

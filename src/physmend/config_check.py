@@ -49,6 +49,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "symbolic.canonical_r2": (ABOVE_ZERO, 1.0),
     "mask.tolerance": (0.0, math.inf),
     "train.continuity_weight": (0.0, math.inf),
+    "train.restarts": (0, math.inf),
 }
 
 class SettingError(ValueError):

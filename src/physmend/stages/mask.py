@@ -109,7 +109,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
     from physmend.stages.common import load_source, log_artifacts, log_training, merged, resolve
     from physmend.tracking import TrackingError, open_store, stage_run
-    from physmend.ude import evaluate, train
+    from physmend.ude import TrainingDiverged, evaluate, train
     from physmend.ude.analysis import rank_corrections, training_trajectories
     from physmend.ude.metrics import checkpoint_problem
     from physmend.ude.warmstart import measured_states
@@ -137,7 +137,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         order = [n for n, _ in ranking]
         for k_try in range(1, min(int(mc.max_k), len(order)) + 1):
             hybrid.keep_only(order[:k_try])
-            by_k.append((k_try, evaluate(hybrid, checked, work)["val.rmse"]))
+            try:
+                by_k.append((k_try, evaluate(hybrid, checked, work)["val.rmse"]))
+            except TrainingDiverged:  # without the other corrections this network leaves every range
+                by_k.append((k_try, math.inf))
             if by_k[-1][1] <= (1.0 + float(mc.tolerance)) * full:
                 break
         hybrid.keep_only(hybrid.spec.corrected)
@@ -150,7 +153,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         measured = {problem.model.state_names[i] for _, i in measured_states(problem)}
         sets = [kept] + ([] if mc.keep else rivals(kept, [n for n, _ in ranking], int(mc.rivals), measured))
         tried = [(names, _retrain(work, problem, names, train)) for names in sets]
-        kept, result = best_retrained(tried, float(mc.tolerance))
+        if any(not isinstance(r, Exception) for _, r in tried):
+            kept, result = best_retrained(tried, float(mc.tolerance))
+        else:  # no retraining could be simulated: the source network, masked to the kept set, goes on
+            print(f"Every retrained candidate set diverged ({tried[0][1]}); the source network goes on with "
+                  f"its corrections masked to {', '.join(kept)}.")
     kept_in_order = [n for n in problem.model.state_names if n in kept]
     if result is not None:
         work.ude.corrected = kept_in_order  # the retrained network's configuration

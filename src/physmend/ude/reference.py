@@ -98,7 +98,8 @@ def held_out_apart(problem: Problem, batch: Batch, solve: Callable[[Batch], torc
     """
     try:
         return solve(batch)
-    except SimulationError:
+    except SimulationError as exc:
+        first = exc
         test = [i for i, e in enumerate(problem.experiments) if e.role == "test"]
         if not test:
             raise
@@ -118,9 +119,25 @@ def held_out_apart(problem: Problem, batch: Batch, solve: Callable[[Batch], torc
             continue  # NaN: the report counts it (test.failed)
         if out is None:
             out = torch.full((batch.t.shape[0], batch.size, *part.shape[2:]), math.nan, dtype=part.dtype)
-        out[torch.searchsorted(batch.t, sub.t)[:, None], torch.tensor(group)[None, :]] = part
-    assert out is not None  # the kept group either solved or raised
+        out[:, torch.tensor(group)] = on_axis(part, sub.t, batch.t)
+    if out is None:  # only test experiments, and none could be solved
+        raise first
     return out
+
+
+def on_axis(values: torch.Tensor, t_from: torch.Tensor, t_to: torch.Tensor) -> torch.Tensor:
+    """``values (T1, ...)`` at the times ``t_from (T1,)`` (ascending), linearly interpolated to the
+    times ``t_to (T2,)``: ``(T2, ...)``, NaN outside ``t_from``'s span (a group solved apart has no
+    rows at the other experiments' sample times; every row of the shared axis needs its value)."""
+    k = torch.searchsorted(t_from, t_to).clamp(1, max(t_from.shape[0] - 1, 1))
+    if t_from.shape[0] == 1:
+        out = values[torch.zeros_like(k)]
+    else:
+        t0, t1 = t_from[k - 1], t_from[k]
+        w = ((t_to - t0) / (t1 - t0)).reshape(-1, *([1] * (values.dim() - 1))).to(values.dtype)
+        out = values[k - 1] + w * (values[k] - values[k - 1])
+    outside = (t_to < t_from[0]) | (t_to > t_from[-1])
+    return torch.where(outside.reshape(-1, *([1] * (values.dim() - 1))), torch.nan, out)
 
 
 def _train_mask(problem: Problem, batch: Batch) -> torch.Tensor:

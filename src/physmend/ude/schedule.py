@@ -38,6 +38,32 @@ def lr_factor(tc: Any, epochs: int, *, warm: bool) -> Callable[[int], float]:
     return factor
 
 
+def restarts(tc: Any) -> int:
+    """``train.restarts``: how many more cycles of ``train.epochs`` (the schedule started again) a
+    model may get (:func:`stops_at`). A network that diverges at every checkpoint has not been
+    trained yet (a warm start outside its data, a record far from the others)."""
+    n = int(tc.get("restarts", 0))
+    if n < 0:
+        raise UDEConfigError(f"train.restarts must be at least 0, but got {n}")
+    return n
+
+
+def cycle_of(epoch: int, epochs: int) -> int:
+    """The cycle (0: the first) that epoch ``epoch`` (1-based; 0: the warm start) belongs to."""
+    return max(0, epoch - 1) // max(epochs, 1)
+
+
+def stops_at(epoch: int, epochs: int, good_cycle: int | None) -> bool:
+    """True when training stops before epoch ``epoch``: at the end of a cycle, once the model had a
+    good checkpoint (one whose whole trajectories could be simulated) in the first cycle or in a
+    cycle before the one that just ended. A model whose first good checkpoint came in a restarted
+    cycle gets one more full cycle (it had only just begun to fit); one with none goes on."""
+    if epoch <= epochs or (epoch - 1) % epochs != 0 or good_cycle is None:
+        return False
+    ended = cycle_of(epoch - 1, epochs)
+    return good_cycle == 0 or good_cycle < ended
+
+
 def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
     """The learning rate of every epoch, from the optimiser/scheduler pair train() uses."""
     tc = cfg.train

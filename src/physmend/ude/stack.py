@@ -42,6 +42,7 @@ class _Member:
     history: list[dict[str, float]] = field(default_factory=list)
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best: int = 0
+    good_cycle: int | None = None  # the training cycle of its first checkpoint that could be simulated
     outcome: BaseException | None = None  # set when the model stops with an error
     failed: TrainingDiverged | None = None  # the last checkpoint whose whole trajectory failed (dropped)
     done: bool = False

@@ -61,7 +61,7 @@ from physmend.ude.stack_plan import _setup
 from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.reference import Reference, _sim_opts
-from physmend.ude.schedule import _lr_schedule
+from physmend.ude.schedule import _lr_schedule, cycle_of, restarts, stops_at
 from physmend.ude.shooting import BOX_MARGIN, Shooting, pinned_starts, segments_finite
 from physmend.ude.warmstart import Forced, recall_derived, remember_derived
 
@@ -77,6 +77,7 @@ SHARED_KEYS: tuple[str, ...] = (
     "train.segment_length",
     "train.segment_samples",
     "train.epochs",
+    "train.restarts",
     "train.schedule",
     "train.eval_every",
     "train.patience",
@@ -260,6 +261,8 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
                    "fit_loss": float("nan") if fit is None else float(fit[pos]),
                    **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
             mem.history.append(row)
+            if mem.best is None:
+                mem.good_cycle = cycle_of(epoch, epochs)
             if mem.best is None or metrics["val.rmse"] < mem.best[0]:
                 stack.write_back(pos)
                 mem.best = (metrics["val.rmse"], copy.deepcopy(mem.hybrid.state_dict()), metrics)
@@ -289,7 +292,12 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
                 known[pos] = dict(stored[1])
         checkpoint(warm, 0, None, None, known)
         drop_done()
-    for epoch in range(1, epochs + 1):
+    cycles = 1 + restarts(tc)
+    for epoch in range(1, epochs * cycles + 1):
+        if epoch > epochs and (epoch - 1) % epochs == 0:  # a cycle ended: the models that need it go on
+            for mem in stack.members:  # with their schedule restarted (stops_at)
+                mem.done = mem.done or stops_at(epoch, epochs, mem.good_cycle)
+            drop_done()
         if not stack.members:
             break
         loss, fit = stack.losses()
@@ -301,10 +309,10 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
                                            "try a smaller train.lr or train.step")
             mem.done = True
         if bool(ok.any()):
-            lr = torch.tensor([mem.lrs[epoch - 1] for mem in stack.members], dtype=stack.dtype)
+            lr = torch.tensor([mem.lrs[(epoch - 1) % epochs] for mem in stack.members], dtype=stack.dtype)
             stack.step(loss, lr, torch.nonzero(ok).flatten())
         loss, fit = loss.detach(), fit.detach()
-        if epoch % eval_every == 0 or epoch == epochs:
+        if epoch % eval_every == 0 or epoch % epochs == 0:
             live = [i for i, mem in enumerate(stack.members) if not mem.done]
             if live:
                 checkpoint(live, epoch, loss, fit)

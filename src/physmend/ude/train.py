@@ -28,7 +28,7 @@ from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import _evaluate, checkpoint_problem
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.reference import _sim_opts, _train_mask, reference
-from physmend.ude.schedule import _chain, lr_factor
+from physmend.ude.schedule import _chain, cycle_of, lr_factor, restarts, stops_at
 from physmend.ude.shooting import _equation_scale, _initial_segments, _output_spread, chained_starts, plan_shooting, rk4_segments
 from physmend.ude.spec import build_spec
 from physmend.ude.warmstart import segment_starts, warm_start
@@ -90,7 +90,10 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         groups.append({"params": [hybrid.est_raw], "weight_decay": 0.0})
     opt = torch.optim.AdamW(groups, lr=float(tc.lr))
     epochs = int(tc.epochs)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor(tc, epochs, warm=forced is not None))
+    cycles = 1 + restarts(tc)
+    factor = lr_factor(tc, epochs, warm=forced is not None)
+    # a cycle that ends with no checkpoint that could be simulated restarts the schedule (see restarts())
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda e: factor(e % epochs))
     sim = _sim_opts(cfg)
     eval_every = max(1, int(tc.eval_every))
     patience = int(tc.patience)
@@ -100,6 +103,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     history: list[dict[str, float]] = []
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best = 0
+    good_cycle: int | None = None  # the cycle of the first checkpoint that could be simulated
     failed: TrainingDiverged | None = None  # the last checkpoint whose whole trajectory failed
     has_next = plan.next_of >= 0
     outputs = problem.compiled.outputs
@@ -107,7 +111,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
 
     def checkpoint(epoch: int, loss: float, fit: float) -> bool:
         """Evaluate whole trajectories, keep the best state; True when patience has run out."""
-        nonlocal best, since_best, failed
+        nonlocal best, since_best, failed, good_cycle
         try:
             metrics, _, _ = _evaluate(hybrid, checked, sim)
         except TrainingDiverged as exc:  # not a candidate; training goes on, patience counts it
@@ -120,6 +124,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         row = {"epoch": float(epoch), "loss": loss, "fit_loss": fit,
                **{k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse")}}
         history.append(row)
+        if best is None:
+            good_cycle = cycle_of(epoch, epochs)
         if best is None or metrics["val.rmse"] < best[0]:
             best = (metrics["val.rmse"], copy.deepcopy(hybrid.state_dict()), metrics)
             since_best = 0
@@ -131,7 +137,9 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
 
     if forced is not None:  # the warm start itself is a candidate (it may already be the best fit)
         checkpoint(0, float("nan"), float("nan"))
-    for epoch in range(1, epochs + 1):
+    for epoch in range(1, epochs * cycles + 1):
+        if stops_at(epoch, epochs, good_cycle):
+            break  # a cycle ended after the model had been good long enough: no restart
         opt.zero_grad(set_to_none=True)
         p = hybrid.parameters_for(params_seg)
         u0 = torch.where(pinned, fixed_first, torch.clamp(seg0 + free * state_scale, lo, hi))
@@ -157,7 +165,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         torch.nn.utils.clip_grad_norm_(hybrid.parameters(), 10.0)
         opt.step()
         sched.step()
-        if (epoch % eval_every == 0 or epoch == epochs) and checkpoint(epoch, float(loss.detach()), float(fit.detach())):
+        if (epoch % eval_every == 0 or epoch % epochs == 0) and checkpoint(epoch, float(loss.detach()), float(fit.detach())):
             break
     if best is None:  # every checkpoint failed
         raise failed or TrainingDiverged("no checkpoint was evaluated")

@@ -12,13 +12,16 @@ model is exactly the one proposed). The re-fit is kept only where it lowers the 
 of whole-trajectory simulations; the corrected model is simulated once with the regression's
 constants (which also checks that it can be simulated at all) and once with the re-fitted ones.
 
-With ``symbolic.select: recorded`` (default) and every kept equation's state measured, the front
+With ``symbolic.select: recorded`` (default), for every kept equation whose state is measured, the front
 is joined by the mechanism catalogue's forms (each fitted to the target), and the formula is
 chosen by the *recordings* rather than by the network: each candidate is scored against the
 measured equation's mismatch along the forced trajectories (:mod:`physmend.ude.rates`), and the
 one with the lowest BIC there (constants against independent windows) is taken. A network
 absorbs offsets and leans on look-alike inputs; a formula that merely copies those quirks explains
-the recordings no better than the simple form behind them.
+the recordings no better than the simple form behind them. A kept equation whose state is not
+measured has no recorded mismatch: its formula is chosen by the corrected model's fit of the
+training records (:func:`choose_by_simulation`), and then each measured kept equation's formula is
+weighed against none (:func:`drop_needless`).
 """
 
 from __future__ import annotations
@@ -33,6 +36,10 @@ import torch
 from omegaconf import OmegaConf
 
 STAGE = "symbolic"
+
+#: Levenberg–Marquardt steps at most for each candidate's constants in the 'simulated' choice (the
+#: re-fit of the chosen formula converges in a handful; this bounds the cost per candidate)
+SELECTION_REFIT_STEPS = 10
 
 
 def equation_unit(model: Any, state: str) -> str:
@@ -276,6 +283,97 @@ def choose_by_recordings(rates: Any, state: str, front: Any) -> tuple[int, str, 
     return pick, why, [(a, r2) for a, _, r2 in scores]
 
 
+def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build: Any,
+                         refit_steps: int = 0) -> tuple[int, str]:
+    """The formula for ``state`` whose corrected *model* best reproduces the training records.
+
+    Where a kept equation's state is not measured, no recorded mismatch exists for it and the
+    network's output is the only per-sample target (which a network that leans on look-alike
+    inputs, or an estimate that absorbed part of the term, distorts — in form and in size). Each
+    candidate is judged instead by what the engineer would judge: the corrected model (``build(i)``
+    gives its corrections, the other equations at their current choice) simulated over the
+    training records by multiple shooting — segments of the records, hidden segment starts free —
+    with its constants re-fitted (at most ``refit_steps`` Levenberg–Marquardt steps: a right form
+    sized wrong by the regression would otherwise lose to a wrong one; :mod:`physmend.symbolic.refit`).
+    ``BIC = n·ln(L) + k·ln(n)`` with ``L`` the re-fitted multiple-shooting loss (the mean squared
+    normalised output error plus the continuity penalty), ``k`` the formula's constants and ``n``
+    the independent windows (``symbolic.window`` long) of the training records. A candidate whose
+    segments cannot be solved is out. Validation and test records decide nothing here.
+    """
+    import dataclasses
+
+    from physmend.modeling.evaluate import n_constants
+    from physmend.simulate import make_batch
+    from physmend.ude.metrics import checkpoint_problem
+    from physmend.ude.reference import reference
+
+    window = max(float(work.symbolic.window), 1e-300)
+    span = sum(float(e.split_time if e.split_time is not None else e.obs_time[-1]) - float(e.obs_time[0])
+               for e in problem.experiments if e.role == "train")
+    n = max(2.0, span / window)
+    # the model as written, simulated once: the segments' plan, initial guesses and scales (a
+    # candidate's own parameters — its constants — come with its own batch)
+    base = reference(checkpoint_problem(problem), work)
+    losses = []
+    for i, c in enumerate(front.candidates):
+        corrections = build(i)
+        corrected = checkpoint_problem(corrected_problem(work, corrections))
+        ref = dataclasses.replace(base, batch=make_batch(corrected.experiments, corrected.compiled, corrected.dtype))
+        try:
+            _, result = refit(work, corrected, ref, corrections, refit_steps)
+            loss = float(result.loss_after)
+        except Exception:  # noqa: BLE001 - a candidate whose segments cannot be solved is out
+            loss = float("inf")
+        losses.append(loss if np.isfinite(loss) else float("inf"))
+    bic = [n * np.log(max(v, 1e-300)) + n_constants(c.expr) * np.log(n) if np.isfinite(v) else np.inf
+           for v, c in zip(losses, front.candidates)]
+    if not np.isfinite(bic).any():
+        return 0, (f"Rule 'simulated': no formula for {state} gave a corrected model whose segments could be "
+                   "solved; index 0 (the simplest) is kept for the fallback along the front")
+    pick = int(np.argmin(bic))
+    c = front.candidates[pick]
+    why = (f"Rule 'simulated' ({state} is not measured, so no recorded mismatch exists for it): each formula put "
+           f"into the model, its constants re-fitted through the simulator (multiple shooting over the training "
+           f"records, at most {refit_steps} steps); the lowest BIC = n·ln(L) + k·ln(n) of that loss ({n:.0f} "
+           f"independent windows of {window:.4g}); chose index {pick} ({n_constants(c.expr)} constant(s), "
+           f"loss {losses[pick]:.4g}): {c.text}")
+    return pick, why
+
+
+def drop_needless(work: Any, problem: Any, kept: list[str], simulated: list[str], choices: dict, fronts: dict,
+                  picks: dict, columns: dict, units: dict, sc: Any) -> dict[str, str]:
+    """Measured equations whose correction the corrected model does not need, once the unmeasured
+    ones (``simulated``) carry their formulas: ``{state: why}``.
+
+    A network may split one missing term between an unmeasured state's equation and the measured
+    equation downstream of it (the mask keeps both when they validate alike). With the unmeasured
+    equation's formula in the model, each measured equation's chosen formula is weighed against
+    none at all by the same rule (:func:`choose_by_simulation`: constants re-fitted, BIC of the
+    simulated training records); a formula that buys too little is dropped.
+    """
+    from physmend.symbolic import Candidate, ParetoFront
+
+    out: dict[str, str] = {}
+    if not simulated:
+        return out
+    for state in [s for s in kept if s not in simulated and choices.get(s) is None]:
+        chosen = fronts[state].candidates[picks[state][0]]
+        none = Candidate(expr=sp.Integer(0), complexity=0, mse=float("nan"), r2=0.0, text="no correction")
+        pair = ParetoFront(backend=fronts[state].backend, target=state, inputs=fronts[state].inputs,
+                           candidates=[none, chosen])
+
+        def build(i: int, state: str = state) -> list:
+            return [_correction(problem, s, fronts[s], *picks[s], columns, units, sc, {})
+                    for s in kept if s not in out and (s != state or i == 1)]
+
+        i, why = choose_by_simulation(work, problem, state, pair, build, min(int(sc.refit_epochs), SELECTION_REFIT_STEPS))
+        if i == 0:
+            out[state] = why
+            print(f"{state}: no correction — with the formulas of {', '.join(simulated)} in the model, its chosen "
+                  f"formula ({chosen.text}) does not pay for its constants in the simulated training records.")
+    return out
+
+
 def _correction(problem: Any, state: str, front: Any, idx: int, why: str, columns: dict[str, np.ndarray],
                 units: dict[str, str], sc: Any, chosen: dict[str, Any]) -> Any:
     """The correction for Pareto candidate ``idx`` (clean catalogue form when it fits); records ``chosen``."""
@@ -343,21 +441,31 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         from physmend.ude.rates import recorded_rates
 
         rates = recorded_rates(hybrid, problem, work, kept, float(window), traj.handed)
-        if rates is not None and set(rates.targets) != set(kept):
-            rates = None  # some kept equation's state is not measured: the network decides
+    # a kept equation whose state is not measured has no recorded mismatch: the simulated model decides
+    simulated = [s for s in kept if select == "recorded" and choices.get(s) is None
+                 and (rates is None or s not in rates.targets)]
     recorded_scores: dict[str, list[tuple[float, float]]] = {}
     for state in kept:
         front = fit(X, y_all[state], x_names, backend=str(sc.backend), target=state, units=units,
                     options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)))
-        if rates is not None:
+        if select == "recorded":
             front.candidates = sorted(front.candidates + catalogue_candidates(x_names, units, columns, y_all[state]),
                                       key=lambda c: (c.complexity, c.mse))
         fronts[state] = front
-        if rates is not None and choices.get(state) is None:
+        if rates is not None and state in rates.targets and choices.get(state) is None:
             i, why, recorded_scores[state] = choose_by_recordings(rates, state, front)
             picks[state] = (i, why)
         else:
             picks[state] = choose(front, rule=str(sc.rule), index=choices.get(state))
+    for state in simulated:  # after the other equations' choices: each is judged in the corrected model
+        def build(i: int, state: str = state) -> list:
+            return [_correction(problem, s, fronts[s], *((i, "") if s == state else picks[s]), columns, units, sc, {})
+                    for s in kept]
+        picks[state] = choose_by_simulation(work, problem, state, fronts[state], build,
+                                            min(int(sc.refit_epochs), SELECTION_REFIT_STEPS))
+    dropped = drop_needless(work, problem, kept, simulated, choices, fronts, picks, columns, units, sc)
+    kept = [s for s in kept if s not in dropped]
+    fronts = {s: f for s, f in fronts.items() if s not in dropped}
     fallback = ""
     while True:
         corrections = [_correction(problem, state, fronts[state], *picks[state], columns, units, sc, chosen) for state in kept]

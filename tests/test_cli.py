@@ -20,8 +20,18 @@ def test_run_id_options_and_overrides_in_any_order(argv: list[str]) -> None:
     assert (args.run_id, args.config_dir, args.overrides) == (RUN, "conf", ["model=m", "data=d"])
 
 
+@pytest.mark.parametrize("argv", [
+    ["mask", "~data.time_unit", RUN, "model=m"],
+    ["mask", RUN, "~data.time_unit", "model=m"],
+    ["mask", "model=m", "~data.time_unit", RUN],
+])
+def test_hydras_deletion_is_an_override_not_a_run_id(argv: list[str]) -> None:
+    args = parse(_parser(), argv)
+    assert args.run_id == RUN and sorted(args.overrides) == ["model=m", "~data.time_unit"]
+
+
 def test_a_stray_word_or_option_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
-    for argv, said in ((["symbolic", RUN, "other"], "overrides must look like key=value, but got ['other']"),
+    for argv, said in ((["symbolic", RUN, "other"], "overrides must look like key=value (or ~key to delete one), but got ['other']"),
                        (["diagnose", RUN], "overrides must look like key=value"),
                        (["symbolic", RUN, "--bogus", "x=1"], "unrecognized arguments: --bogus")):
         with pytest.raises(SystemExit) as exc:

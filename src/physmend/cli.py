@@ -79,10 +79,19 @@ def _common(p: argparse.ArgumentParser) -> None:
 def _split_run_id(args: argparse.Namespace) -> None:
     """``physmend STAGE [--config-dir D] k=v RUN_ID`` in any order: argparse hands RUN_ID to the
     overrides when it comes first or after an option; take it back (the first word without '=')."""
-    if getattr(args, "run_id", "-") is None:
-        words = [i for i, o in enumerate(args.overrides) if "=" not in o]
+    run_id = getattr(args, "run_id", "-")
+    if run_id is not None and run_id != "-" and _is_override(run_id):  # ``~key`` first: Hydra's deletion
+        args.overrides = [run_id, *args.overrides]
+        args.run_id = run_id = None
+    if run_id is None:
+        words = [i for i, o in enumerate(args.overrides) if not _is_override(o)]
         if words:
             args.run_id = args.overrides.pop(words[0])
+
+
+def _is_override(word: str) -> bool:
+    """``key=value``, ``+key=value`` or Hydra's deletion ``~key`` (``~key=value``)."""
+    return "=" in word or word.startswith("~")
 
 
 def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
@@ -96,9 +105,9 @@ def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argpar
         args.overrides = list(args.overrides) + extra
     if args.command is not None:
         _split_run_id(args)
-        bad = [o for o in args.overrides if "=" not in o]
+        bad = [o for o in args.overrides if not _is_override(o)]
         if bad:
-            parser.error(f"overrides must look like key=value, but got {bad}")
+            parser.error(f"overrides must look like key=value (or ~key to delete one), but got {bad}")
     return args
 
 

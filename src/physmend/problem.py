@@ -20,6 +20,8 @@ class Problem:
     compiled: CompiledModel
     experiments: list[Any]
     dtype: torch.dtype
+    #: the unit of every time (``data.time_unit``: seconds unless declared; any other unit is shown, never converted)
+    time_unit: str = "s"
 
     def by_role(self, *roles: str) -> list[Any]:
         return [e for e in self.experiments if e.role in roles]
@@ -47,4 +49,7 @@ def load_problem(cfg: Any) -> Problem:
     dtype = dtype_of(cfg)
     model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}, cfg.model.get("corrections")).simplify()
     experiments = load_experiments(cfg.data, model)
-    return Problem(model=model, compiled=compile_model(model), experiments=experiments, dtype=dtype)
+    from physmend.data.config import time_unit_of
+
+    return Problem(model=model, compiled=compile_model(model), experiments=experiments, dtype=dtype,
+                   time_unit=time_unit_of(cfg.data))

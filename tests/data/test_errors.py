@@ -110,6 +110,11 @@ def _upd(d: dict[str, Any], **kw: Any) -> None:
 
 CASES: list[Any] = [
     pytest.param(
+        _cfg(lambda c: c.update(time_unit="${oc.env:HOME} hours")),
+        ["`time_unit` must be a short unit name", "'${oc.env:HOME} hours'"],
+        id="bad-time-unit",
+    ),
+    pytest.param(
         _cfg(lambda c: _upd(_exp(c), file="nope.csv")),
         ["{root}/nope.csv", "experiment '1'", "not found"],
         id="file-not-found",

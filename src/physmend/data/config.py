@@ -5,6 +5,7 @@ Schema (an OmegaConf ``DictConfig`` or a plain mapping)::
     name: my_plant
     root: ${project:}/telemetry    # or a path ('~' expands, relative = cwd) or pkg://<package>/<subdir>
     time_column: time              # seconds (numeric); default "time"
+    time_unit: s                   # s (default) or the model's own time unit (tu …): shown as it is, never converted
     columns: {}                    # model name -> column name in the files; default {}
     validation_fraction: 0.2       # used when no experiment has role validation; default 0.2
     experiments:
@@ -25,6 +26,7 @@ from __future__ import annotations
 import difflib
 import importlib.resources
 import math
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,7 +44,7 @@ DEFAULT_TIME_COLUMN = "time"
 DEFAULT_VALIDATION_FRACTION = 0.2
 PKG_SCHEME = "pkg://"
 
-_TOP_KEYS = ("name", "root", "time_column", "columns", "validation_fraction", "experiments")
+_TOP_KEYS = ("name", "root", "time_column", "time_unit", "columns", "validation_fraction", "experiments")
 _EXP_KEYS = ("id", "file", "role", "parameters", "initial")
 
 
@@ -109,6 +111,22 @@ class DataConfig:
 
 
 # -- helpers ---------------------------------------------------------------------------------------
+
+def time_unit_of(data_cfg: Any) -> str:
+    """``time_unit`` of a data config: ``s`` (default: times are seconds) or the name of the
+    model's own time unit (``tu``, ``dimensionless`` …: shown as it is, never converted).
+
+    Raises:
+        DataError: not a short word (letters, digits, ``_ . / -``, at most 24 characters).
+    """
+    value = data_cfg.get("time_unit", "s")
+    value = "s" if value is None else value
+    if not isinstance(value, str) or not re.fullmatch(r"[A-Za-z0-9_./-]{1,24}", value):
+        name = data_cfg.get("name") or "data"
+        raise DataError(f"data config {name!r}: `time_unit` must be a short unit name (letters, digits, _ . / -; "
+                        f"at most 24 characters), e.g. s or tu, but got {value!r}")
+    return value
+
 
 
 def _close(word: str, options: Sequence[str], n: int = 3, cutoff: float = 0.6) -> list[str]:
@@ -232,6 +250,7 @@ def parse_data_config(data_cfg: Any, model: SimplifiedModel) -> DataConfig:
             raise DataError(f"{where}: missing required key {key!r}")
     root = resolve_root(cfg["root"], config_name=name)
 
+    time_unit_of(cfg)
     time_column = cfg.get("time_column", DEFAULT_TIME_COLUMN)
     if not isinstance(time_column, str) or not time_column:
         raise DataError(f"{where}: `time_column` must be a column name, but got {time_column!r}")

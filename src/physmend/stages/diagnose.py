@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from physmend.explain import residuals as res
+from physmend.explain.clock import axis, clock
 from physmend.problem import Problem, load_problem
 from physmend.simulate import Trajectories, make_batch, simulate_batch
 
@@ -102,17 +103,6 @@ def _interval(t: np.ndarray) -> float:
     return float(np.median(gaps)) if gaps.size else 0.0
 
 
-def _clock(seconds: float, span: float) -> str:
-    """A time in the unit that suits a record of length ``span`` seconds."""
-    if span >= 3 * 86400:
-        return f"{seconds / 86400:.2f} d"
-    if span >= 3 * 3600:
-        return f"{seconds / 3600:.1f} h"
-    if span >= 180:
-        return f"{seconds / 60:.1f} min"
-    return f"{seconds:.1f} s"
-
-
 def _fmt(x: float, unit: str = "") -> str:
     return f"{x:.3g}{(' ' + unit) if unit else ''}"
 
@@ -156,7 +146,7 @@ def summarise(problem: Problem, analysis: dict[str, Any], cfg: Any) -> str:
     lines += ["", "## Where the residual is largest", ""]
     for f in analysis["fits"]:
         spans = ", ".join(
-            f"{_clock(w['start'], f['span'])} – {_clock(w['end'], f['span'])} (RMS {_fmt(w['rms'], f['unit'])}, bias {_fmt(w['bias'], f['unit'])})"
+            f"{clock(w['start'], f['span'], problem.time_unit)} – {clock(w['end'], f['span'], problem.time_unit)} (RMS {_fmt(w['rms'], f['unit'])}, bias {_fmt(w['bias'], f['unit'])})"
             for w in f["windows"]
         )
         lines.append(f"- experiment {f['experiment']}, {f['output']}: {spans}")
@@ -188,7 +178,7 @@ def plot_experiment(problem: Problem, t: np.ndarray, traj: Trajectories, b: int)
     rows = np.searchsorted(t, exp.obs_time)
     sim = traj.outputs.detach().cpu().numpy()[rows, b]
     fig, axes = plt.subplots(len(outs), 2, figsize=(12, 2.8 * len(outs)), squeeze=False)
-    hours = exp.obs_time / 3600
+    hours, _, time_label = axis(exp.obs_time, problem.time_unit)
     for j, out in enumerate(outs):
         unit = problem.model.units.get(out, "")
         ax = axes[j, 0]
@@ -201,7 +191,7 @@ def plot_experiment(problem: Problem, t: np.ndarray, traj: Trajectories, b: int)
         ax2.axhline(0, color="k", lw=0.6)
         ax2.set_ylabel(f"residual sim − meas [{unit}]")
     for ax in axes[-1]:
-        ax.set_xlabel("time [h]")
+        ax.set_xlabel(f"time [{time_label}]")
     fig.suptitle(f"experiment {exp.id} ({exp.role})")
     fig.tight_layout()
     return fig

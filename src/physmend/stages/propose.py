@@ -192,12 +192,12 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         run_.log_text(md_to_html(report, title), "report.html")
         run_.log_text(Path(corr_path).read_text(), "corrections.yaml")
         if bool(cfg.propose.plots):
-            t = batch.t.numpy() / 3600
+            t = batch.t.numpy()
             for b, e in enumerate(before.experiments):
                 curves = [("model as written", traj0.outputs[:, b].numpy(), {"ls": "--", "color": "C3", "lw": 1}),
                           ("corrected model", traj1.outputs[:, b].numpy(), {"color": "C2", "lw": 1.2})]
                 fig = fit_figure(t, batch.obs[:, b].numpy(), curves, outs, before.model.units,
-                                 f"experiment {e.id} ({e.role})")
+                                 f"experiment {e.id} ({e.role})", time_unit=before.time_unit)
                 run_.log_figure(fig, f"plots/fit_{e.id}.png")
                 plt.close(fig)
         run_id = run_.run_id

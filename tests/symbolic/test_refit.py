@@ -83,6 +83,24 @@ def test_refit_recovers_the_drag_constant(user_project: Path, monkeypatch: pytes
     assert one.iterations == 1 and not one.converged and one.loss_after < one.loss_before
 
 
+def test_an_unknown_initial_value_is_fitted_with_the_constants(user_project: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A start the data config declares unknown is an unknown of the fit, within its range: held at
+    its mid-range guess (a wrong start), the first segments would pull the constant off the truth."""
+    monkeypatch.chdir(user_project)
+    data = user_project / "my_conf" / "data" / "oscillator.yaml"
+    text = data.read_text()
+    for x0 in ("0.5", "-0.3"):  # the training records start at rest; declared unknown in [0.3, 1.5] m/s
+        text = text.replace(f"parameters: {{cart.x0: {x0}}}", f"parameters: {{cart.x0: {x0}}}\n    initial: {{cart.v: [0.3, 1.5]}}")
+    data.write_text(text)
+    cfg, corrections, problem, ref = _setup(user_project, -0.3)
+    shoot = _Shooting(problem, cfg, ref, ["cart.v_c1"])
+    first = shoot.plan.first
+    assert bool((~shoot.pinned[first, 1]).all()) and bool(shoot.pinned[first, 0].all())  # v free, x known
+    fitted, result = refit(cfg, problem, ref, corrections, 30)
+    assert abs(fitted[0].constants["c1"] + 0.9) < 0.05, (fitted[0].constants, result)
+
+
 def test_refit_names_unknown_parameters(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from physmend.symbolic import SymbolicError
 

@@ -26,20 +26,19 @@ weighed against none (:func:`drop_needless`).
 
 from __future__ import annotations
 
-import tempfile
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import sympy as sp
 import torch
-from omegaconf import OmegaConf
+
+from physmend.symbolic.choice import (  # noqa: F401 - the stage's pieces, importable from here too
+    SELECTION_REFIT_STEPS, catalogue_candidates, choose_by_recordings, choose_by_simulation, tree_size)
+from physmend.symbolic.corrected import (  # noqa: F401
+    corrected_metrics, corrected_problem, held_out_metrics, refit, simulate_corrected, with_parameters)
 
 STAGE = "symbolic"
 
-#: Levenberg–Marquardt steps at most for each candidate's constants in the 'simulated' choice (the
-#: re-fit of the chosen formula converges in a handful; this bounds the cost per candidate)
-SELECTION_REFIT_STEPS = 10
 
 
 def equation_unit(model: Any, state: str) -> str:
@@ -107,102 +106,6 @@ def targets(hybrid: Any, problem: Any, traj: Any, kept: list[str]) -> dict[str, 
     return {name: values[:, i].numpy() for i, name in enumerate(kept)}
 
 
-def corrected_problem(problem_cfg: Any, corrections: list) -> Any:
-    """The problem of ``problem_cfg`` with ``corrections`` attached to their equations (no network);
-    each constant is a model parameter (:func:`physmend.modeling.corrections.constant_parameter_name`)."""
-    from physmend.modeling import write_corrections
-    from physmend.problem import load_problem
-
-    with tempfile.TemporaryDirectory(prefix="physmend-corrected-") as tmp:
-        work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
-        work.model.corrections = str(write_corrections(Path(tmp) / "candidate.yaml", corrections))
-        return load_problem(work)
-
-
-def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]:
-    """Whole-trajectory simulation of the corrected model (adaptive solver) on the experiments of
-    ``problem`` — every choice passes the training and validation experiments only
-    (:func:`physmend.ude.metrics.checkpoint_problem`); test experiments are simulated for the report.
-
-    Returns ``(reference, None)``, or ``(None, why)`` when it cannot be simulated: the solver
-    fails on some experiment, or an output of a training or validation experiment is not finite.
-    """
-    from physmend.simulate import SimulationError
-    from physmend.ude.reference import reference
-
-    try:
-        ref = reference(problem, problem_cfg)
-    except SimulationError as exc:
-        return None, str(exc).split(":")[0]
-    y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])  # (T, B, k)
-    checked = [b for b, e in enumerate(problem.experiments) if e.role != "test"]
-    if not bool(torch.isfinite(y[:, checked]).all()):
-        return None, "non-finite outputs"
-    return ref, None
-
-
-def held_out_metrics(problem: Any, problem_cfg: Any) -> dict[str, float]:
-    """``test.rmse`` and the per-experiment RMSE of the test experiments of ``problem`` (report only)."""
-    import dataclasses
-
-    test = [e for e in problem.experiments if e.role == "test"]
-    if not test:
-        return {}
-    only = dataclasses.replace(problem, experiments=test)
-    ref, _ = simulate_corrected(only, problem_cfg)
-    if ref is None:
-        return {"test.rmse": float("nan")}
-    out = corrected_metrics(only, ref, require_validation=False)
-    return {k: v for k, v in out.items() if k == "test.rmse" or k.startswith("rmse.")}
-
-
-def with_parameters(problem: Any, values: dict[str, float]) -> Any:
-    """``problem`` with the parameters ``values`` (name -> value) changed in every experiment."""
-    import dataclasses
-
-    names = problem.compiled.parameter_names
-    experiments = []
-    for e in problem.experiments:
-        params = np.array(e.parameters, dtype=float)
-        for name, value in values.items():
-            params[names.index(name)] = float(value)
-        experiments.append(dataclasses.replace(e, parameters=params))
-    return dataclasses.replace(problem, experiments=experiments)
-
-
-def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True) -> dict[str, float]:
-    """Whole-trajectory metrics (``val.rmse`` …, see :func:`physmend.ude.metrics.metrics_of`) of the
-    corrected model from its simulation ``ref`` (:func:`simulate_corrected`)."""
-    from physmend.ude.metrics import metrics_of
-    from physmend.ude.outcome import TrainingDiverged
-
-    with torch.no_grad():
-        y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])
-    try:
-        return metrics_of(problem, ref.batch, y)
-    except TrainingDiverged:
-        if require_validation:
-            raise
-        return {}
-
-
-def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int) -> tuple[list, Any]:
-    """Re-fit the constants of ``corrections`` through the simulator (multiple shooting, at most
-    ``iterations`` Levenberg–Marquardt steps; :mod:`physmend.symbolic.refit`); the model's other
-    parameters stay as written. Returns the re-fitted corrections and the fit's outcome."""
-    from physmend.modeling import Correction
-    from physmend.modeling.corrections import constant_parameter_name
-    from physmend.symbolic.refit import refit_constants
-
-    names = {(c.state, k): constant_parameter_name(problem.model.owner.get(c.state, ""), c.state, k)
-             for c in corrections for k in c.constants}
-    result = refit_constants(problem, problem_cfg, ref, list(names.values()), max_iterations=iterations)
-    fitted = [Correction(state=c.state, term=c.term, unit=c.unit, mechanism=c.mechanism,
-                         constants={k: result.constants.get(names[(c.state, k)], v) for k, v in c.constants.items()})
-              for c in corrections]
-    return fitted, result
-
-
 def estimate_shifts(hybrid: Any, problem: Any, handed: list[str]) -> list[str]:
     """``name declared → estimated (share of its range)`` for each jointly estimated parameter; one
     taken to have absorbed missing physics (``handed``, :func:`physmend.ude.analysis.absorbed`) is
@@ -218,126 +121,6 @@ def estimate_shifts(hybrid: Any, problem: Any, handed: list[str]) -> list[str]:
                 if name in handed else " — calibration, left out of the formula")
         out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({share:+.0%} of its range){flag}")
     return out
-
-
-def tree_size(expr: sp.Expr) -> int:
-    """Nodes of the expression tree (comparable to a symbolic-regression back end's length)."""
-    return sum(1 for _ in sp.preorder_traversal(expr))
-
-
-def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict[str, np.ndarray],
-                         y: np.ndarray) -> list[Any]:
-    """The catalogue's forms over ``inputs`` (unit rules obeyed), each ``c`` fitted to ``y (N,)``,
-    alone and plus a steady offset (``c·form + c0``: an offset the rest of the model leaves)."""
-    import itertools
-
-    from physmend.explain.mechanisms import load_catalogue
-    from physmend.symbolic import Candidate, display, evaluate, mse_r2
-
-    out, seen = [], set()
-    for m in load_catalogue():
-        for combo in itertools.permutations(inputs, len(m.placeholders)):
-            assignment = dict(zip(m.placeholders, combo))
-            if not m.admissible(assignment, units):
-                continue
-            shape = m.shape.xreplace({sp.Symbol(ph): sp.Symbol(v) for ph, v in assignment.items()})
-            t = evaluate(shape, columns, n=y.size)
-            tt = float(t @ t) if np.isfinite(t).all() else 0.0
-            if tt == 0.0:
-                continue
-            variants = [(float(t @ y) / tt, 0.0)]
-            if not shape.is_Number:
-                (c1, c0), *_ = np.linalg.lstsq(np.stack([t, np.ones_like(t)], 1), y, rcond=None)
-                variants.append((float(c1), float(c0)))
-            for c, c0 in variants:
-                mse, r2 = mse_r2(y, c * t + c0)
-                key = (m.id, frozenset(combo), c0 != 0.0, round(mse, 9))
-                if key in seen:  # a - b and b - a: the same form up to the sign of c
-                    continue
-                seen.add(key)
-                expr = sp.Float(c) * shape + (sp.Float(c0) if c0 != 0.0 else 0)
-                out.append(Candidate(expr=expr, complexity=tree_size(expr), mse=mse, r2=r2,
-                                     text=f"{display(expr)}   [catalogue: {m.name}{' + offset' if c0 else ''}]"))
-    return out
-
-
-def choose_by_recordings(rates: Any, state: str, front: Any) -> tuple[int, str, list[tuple[float, float]]]:
-    """The formula with the lowest BIC against the recorded mismatch of ``state``'s equation.
-
-    ``BIC = n·ln(MSE) + k·ln(n)`` with ``k`` the formula's constants (plus its scale) and ``n`` the
-    number of *independent* windows (the sliding windows overlap: one per ``window`` grid points),
-    so a formula buys each extra constant only with a real gain on the recordings. Returns the
-    index, the sentence why, and ``(α, R²)`` per candidate.
-    """
-    from physmend.modeling.evaluate import n_constants
-
-    scores = [rates.score(c.expr, state) for c in front.candidates]
-    n = max(2.0, float(rates.valid.sum()) / rates.window)
-    bic = [n * np.log(max(mse, 1e-300)) + n_constants(c.expr) * np.log(n) if np.isfinite(mse) else np.inf
-           for c, (_, mse, _) in zip(front.candidates, scores)]
-    pick = int(np.argmin(bic))
-    c = front.candidates[pick]
-    why = (f"Rule 'recorded': against the recorded mismatch of the {state} equation (windows of {rates.window} grid "
-           f"steps, {n:.0f} independent), the lowest BIC = n·ln(MSE) + k·ln(n); chose index {pick} "
-           f"({n_constants(c.expr)} constant(s), recorded R² {scores[pick][2]:.4f}): {c.text}")
-    return pick, why, [(a, r2) for a, _, r2 in scores]
-
-
-def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build: Any,
-                         refit_steps: int = 0) -> tuple[int, str]:
-    """The formula for ``state`` whose corrected *model* best reproduces the training records.
-
-    Where a kept equation's state is not measured, no recorded mismatch exists for it and the
-    network's output is the only per-sample target (which a network that leans on look-alike
-    inputs, or an estimate that absorbed part of the term, distorts — in form and in size). Each
-    candidate is judged instead by what the engineer would judge: the corrected model (``build(i)``
-    gives its corrections, the other equations at their current choice) simulated over the
-    training records by multiple shooting — segments of the records, hidden segment starts free —
-    with its constants re-fitted (at most ``refit_steps`` Levenberg–Marquardt steps: a right form
-    sized wrong by the regression would otherwise lose to a wrong one; :mod:`physmend.symbolic.refit`).
-    ``BIC = n·ln(L) + k·ln(n)`` with ``L`` the re-fitted multiple-shooting loss (the mean squared
-    normalised output error plus the continuity penalty), ``k`` the formula's constants and ``n``
-    the independent windows (``symbolic.window`` long) of the training records. A candidate whose
-    segments cannot be solved is out. Validation and test records decide nothing here.
-    """
-    import dataclasses
-
-    from physmend.modeling.evaluate import n_constants
-    from physmend.simulate import make_batch
-    from physmend.ude.metrics import checkpoint_problem
-    from physmend.ude.reference import reference
-
-    window = max(float(work.symbolic.window), 1e-300)
-    span = sum(float(e.split_time if e.split_time is not None else e.obs_time[-1]) - float(e.obs_time[0])
-               for e in problem.experiments if e.role == "train")
-    n = max(2.0, span / window)
-    # the model as written, simulated once: the segments' plan, initial guesses and scales (a
-    # candidate's own parameters — its constants — come with its own batch)
-    base = reference(checkpoint_problem(problem), work)
-    losses = []
-    for i, c in enumerate(front.candidates):
-        corrections = build(i)
-        corrected = checkpoint_problem(corrected_problem(work, corrections))
-        ref = dataclasses.replace(base, batch=make_batch(corrected.experiments, corrected.compiled, corrected.dtype))
-        try:
-            _, result = refit(work, corrected, ref, corrections, refit_steps)
-            loss = float(result.loss_after)
-        except Exception:  # noqa: BLE001 - a candidate whose segments cannot be solved is out
-            loss = float("inf")
-        losses.append(loss if np.isfinite(loss) else float("inf"))
-    bic = [n * np.log(max(v, 1e-300)) + n_constants(c.expr) * np.log(n) if np.isfinite(v) else np.inf
-           for v, c in zip(losses, front.candidates)]
-    if not np.isfinite(bic).any():
-        return 0, (f"Rule 'simulated': no formula for {state} gave a corrected model whose segments could be "
-                   "solved; index 0 (the simplest) is kept for the fallback along the front")
-    pick = int(np.argmin(bic))
-    c = front.candidates[pick]
-    why = (f"Rule 'simulated' ({state} is not measured, so no recorded mismatch exists for it): each formula put "
-           f"into the model, its constants re-fitted through the simulator (multiple shooting over the training "
-           f"records, at most {refit_steps} steps); the lowest BIC = n·ln(L) + k·ln(n) of that loss ({n:.0f} "
-           f"independent windows of {window:.4g}); chose index {pick} ({n_constants(c.expr)} constant(s), "
-           f"loss {losses[pick]:.4g}): {c.text}")
-    return pick, why
 
 
 def drop_needless(work: Any, problem: Any, kept: list[str], simulated: list[str], choices: dict, fronts: dict,
@@ -457,10 +240,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             picks[state] = (i, why)
         else:
             picks[state] = choose(front, rule=str(sc.rule), index=choices.get(state))
-    for state in simulated:  # after the other equations' choices: each is judged in the corrected model
+    for state in simulated:  # each is judged in the corrected model with the other unmeasured ones' formulas; the
+        # measured equations' corrections come after (drop_needless): a network may have split one term between them
         def build(i: int, state: str = state) -> list:
             return [_correction(problem, s, fronts[s], *((i, "") if s == state else picks[s]), columns, units, sc, {})
-                    for s in kept]
+                    for s in simulated]
         picks[state] = choose_by_simulation(work, problem, state, fronts[state], build,
                                             min(int(sc.refit_epochs), SELECTION_REFIT_STEPS))
     dropped = drop_needless(work, problem, kept, simulated, choices, fronts, picks, columns, units, sc)

@@ -5,7 +5,8 @@ all training segments (``train.segment_length``) solved at once by fixed-step RK
 (``train.step``), the mean squared error of the measured outputs (each scaled by its spread)
 plus ``train.continuity_weight`` × the mean squared gap between a segment's end and the next
 segment's start (in units of each state's spread). The unknowns are the few constants and the
-starts of every segment but each experiment's first (which starts from its known initial state).
+starts of every segment but each experiment's first (which starts from its known initial state,
+except for initial values the data config declares unknown: unknowns within their range).
 
 That loss is a sum of squares, and its unknowns couple only segment by segment, so
 Levenberg–Marquardt solves it in a handful of iterations where a first-order method (Adam) needs
@@ -77,7 +78,7 @@ class _Shooting:
     def __init__(self, problem: Any, cfg: Any, ref: Any, names: Sequence[str]) -> None:
         from physmend.ude.hybrid import HybridModel, HybridSpec
         from physmend.ude.reference import _train_mask
-        from physmend.ude.shooting import _initial_segments, _output_spread, plan_shooting
+        from physmend.ude.shooting import _initial_segments, _output_spread, pinned_starts, plan_shooting
         from physmend.ude.warmstart import forced_trajectories, segment_starts
 
         compiled = problem.compiled
@@ -103,7 +104,10 @@ class _Shooting:
         self.params = ref.batch.params[plan.exp_index]  # (S, n_params)
         self.S, self.n = seg0.shape
         self.K = len(self.idx)
-        self.free = (~plan.first).nonzero().squeeze(-1)  # (F,) segments whose starts are unknowns
+        # (S, n) entries that are an experiment's known initial state; an initial value its data
+        # config declares unknown is an unknown here too, within its range (as training treats it)
+        self.pinned, self.start_lo, self.start_hi = pinned_starts(ref.batch, plan, compiled.state_names)
+        self.free = (~self.pinned.all(-1)).nonzero().squeeze(-1)  # (F,) segments with unknown starts
         self.F = int(self.free.numel())
         self.col_of = torch.full((self.S,), -1, dtype=torch.long)
         self.col_of[self.free] = torch.arange(self.F)
@@ -122,8 +126,9 @@ class _Shooting:
 
     # -- solving ------------------------------------------------------------------------------------
     def starts(self, v: torch.Tensor) -> torch.Tensor:
-        """Segment starts ``(S, n)`` for offsets ``v (S, n)`` (first segments: the known initial state)."""
-        return torch.where(self.plan.first[:, None], self.fixed_first, self.seg0 + v * self.scale)
+        """Segment starts ``(S, n)`` for offsets ``v (S, n)`` (first segments: the known initial state;
+        a declared-unknown initial value within its range)."""
+        return torch.where(self.pinned, self.fixed_first, torch.clamp(self.seg0 + v * self.scale, self.start_lo, self.start_hi))
 
     def _solve(self, u0: torch.Tensor, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """RK4 over ``C`` stacked copies of the segments: ``u0, p (C·S, ·)`` -> states ``(K+1, C·S, n)``

@@ -1,0 +1,108 @@
+"""The corrected model — the model as written plus formulas, no network — built, simulated, scored
+and its constants re-fitted through the simulator (the symbolic stage's and the choice's tools)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+
+
+def corrected_problem(problem_cfg: Any, corrections: list) -> Any:
+    """The problem of ``problem_cfg`` with ``corrections`` attached to their equations (no network);
+    each constant is a model parameter (:func:`physmend.modeling.corrections.constant_parameter_name`)."""
+    from physmend.modeling import write_corrections
+    from physmend.problem import load_problem
+
+    with tempfile.TemporaryDirectory(prefix="physmend-corrected-") as tmp:
+        work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
+        work.model.corrections = str(write_corrections(Path(tmp) / "candidate.yaml", corrections))
+        return load_problem(work)
+
+
+def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]:
+    """Whole-trajectory simulation of the corrected model (adaptive solver) on the experiments of
+    ``problem`` — every choice passes the training and validation experiments only
+    (:func:`physmend.ude.metrics.checkpoint_problem`); test experiments are simulated for the report.
+
+    Returns ``(reference, None)``, or ``(None, why)`` when it cannot be simulated: the solver
+    fails on some experiment, or an output of a training or validation experiment is not finite.
+    """
+    from physmend.simulate import SimulationError
+    from physmend.ude.reference import reference
+
+    try:
+        ref = reference(problem, problem_cfg)
+    except SimulationError as exc:
+        return None, str(exc).split(":")[0]
+    y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])  # (T, B, k)
+    checked = [b for b, e in enumerate(problem.experiments) if e.role != "test"]
+    if not bool(torch.isfinite(y[:, checked]).all()):
+        return None, "non-finite outputs"
+    return ref, None
+
+
+def held_out_metrics(problem: Any, problem_cfg: Any) -> dict[str, float]:
+    """``test.rmse`` and the per-experiment RMSE of the test experiments of ``problem`` (report only)."""
+    import dataclasses
+
+    test = [e for e in problem.experiments if e.role == "test"]
+    if not test:
+        return {}
+    only = dataclasses.replace(problem, experiments=test)
+    ref, _ = simulate_corrected(only, problem_cfg)
+    if ref is None:
+        return {"test.rmse": float("nan")}
+    out = corrected_metrics(only, ref, require_validation=False)
+    return {k: v for k, v in out.items() if k == "test.rmse" or k.startswith("rmse.")}
+
+
+def with_parameters(problem: Any, values: dict[str, float]) -> Any:
+    """``problem`` with the parameters ``values`` (name -> value) changed in every experiment."""
+    import dataclasses
+
+    names = problem.compiled.parameter_names
+    experiments = []
+    for e in problem.experiments:
+        params = np.array(e.parameters, dtype=float)
+        for name, value in values.items():
+            params[names.index(name)] = float(value)
+        experiments.append(dataclasses.replace(e, parameters=params))
+    return dataclasses.replace(problem, experiments=experiments)
+
+
+def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True) -> dict[str, float]:
+    """Whole-trajectory metrics (``val.rmse`` …, see :func:`physmend.ude.metrics.metrics_of`) of the
+    corrected model from its simulation ``ref`` (:func:`simulate_corrected`)."""
+    from physmend.ude.metrics import metrics_of
+    from physmend.ude.outcome import TrainingDiverged
+
+    with torch.no_grad():
+        y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])
+    try:
+        return metrics_of(problem, ref.batch, y)
+    except TrainingDiverged:
+        if require_validation:
+            raise
+        return {}
+
+
+def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int) -> tuple[list, Any]:
+    """Re-fit the constants of ``corrections`` through the simulator (multiple shooting, at most
+    ``iterations`` Levenberg–Marquardt steps; :mod:`physmend.symbolic.refit`); the model's other
+    parameters stay as written. Returns the re-fitted corrections and the fit's outcome."""
+    from physmend.modeling import Correction
+    from physmend.modeling.corrections import constant_parameter_name
+    from physmend.symbolic.refit import refit_constants
+
+    names = {(c.state, k): constant_parameter_name(problem.model.owner.get(c.state, ""), c.state, k)
+             for c in corrections for k in c.constants}
+    result = refit_constants(problem, problem_cfg, ref, list(names.values()), max_iterations=iterations)
+    fitted = [Correction(state=c.state, term=c.term, unit=c.unit, mechanism=c.mechanism,
+                         constants={k: result.constants.get(names[(c.state, k)], v) for k, v in c.constants.items()})
+              for c in corrections]
+    return fitted, result

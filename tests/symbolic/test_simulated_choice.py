@@ -56,3 +56,19 @@ def test_the_unmeasured_equation_gets_the_form_that_reproduces_the_records(user_
                                     mse=0.0, r2=0.0, text="drag")
     pick, why = choose_by_simulation(work, problem, "cart.v", front, build, refit_steps=5)
     assert front.candidates[pick].text == "drag", why
+
+
+def test_a_catalogue_form_that_is_one_value_along_the_samples_is_not_a_candidate() -> None:
+    """``sign`` of a voltage that never changes sign is the steady sink, said less simply: only the
+    constant is offered (and a sign that does change is)."""
+    import numpy as np
+
+    from physmend.stages.symbolic import catalogue_candidates
+
+    rng = np.random.default_rng(0)
+    n = 400
+    cols = {"rc.v": np.abs(rng.normal(0.05, 0.02, n)) + 1e-3, "cell.i": rng.normal(0.0, 2.0, n)}
+    y = np.full(n, -0.15) + rng.normal(0, 1e-3, n)
+    texts = [c.text for c in catalogue_candidates(list(cols), {"rc.v": "V", "cell.i": "A"}, cols, y)]
+    assert not any("sign(rc.v)" in t for t in texts), texts
+    assert any("sign(cell.i)" in t for t in texts) and any("steady source" in t for t in texts)

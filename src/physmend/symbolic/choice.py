@@ -22,6 +22,16 @@ def tree_size(expr: sp.Expr) -> int:
     return sum(1 for _ in sp.preorder_traversal(expr))
 
 
+#: a form that takes one value on at least this share of the samples is a constant there
+CONSTANT_SHARE = 0.98
+
+
+def nearly_constant(t: np.ndarray) -> bool:
+    """Whether ``t (N,)`` takes its median value on :data:`CONSTANT_SHARE` of the samples or more
+    (``sign`` of a quantity that never changes sign, a parameter equal in every experiment)."""
+    return bool(np.mean(np.isclose(t, np.median(t), rtol=1e-9, atol=0.0)) >= CONSTANT_SHARE)
+
+
 def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict[str, np.ndarray],
                          y: np.ndarray) -> list[Any]:
     """The catalogue's forms over ``inputs`` (unit rules obeyed), each ``c`` fitted to ``y (N,)``,
@@ -40,8 +50,8 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
             shape = m.shape.xreplace({sp.Symbol(ph): sp.Symbol(v) for ph, v in assignment.items()})
             t = evaluate(shape, columns, n=y.size)
             tt = float(t @ t) if np.isfinite(t).all() else 0.0
-            if tt == 0.0:
-                continue
+            if tt == 0.0 or (not shape.is_Number and nearly_constant(t)):
+                continue  # a form that is one value along the samples is the steady source, said less simply
             variants = [(float(t @ y) / tt, 0.0)]
             if not shape.is_Number:
                 (c1, c0), *_ = np.linalg.lstsq(np.stack([t, np.ones_like(t)], 1), y, rcond=None)

@@ -34,6 +34,8 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     assert rc == 0, err
     rc, out, err = _run(user_project, capsys, "mask", "mask.max_k=2")
     assert rc == 0, err
+    # the network corrects cart.v only (der(x) = v is a definition): the kept set is its own, not retrained
+    assert "goes on as it is" in out and "Retrained with" not in out, out
     mask_id = _last_run_id(out, "mask")
     rc, out, err = _run(user_project, capsys, "sensitivity", mask_id)
     assert rc == 0, err

@@ -6,7 +6,8 @@ smallest k whose *validation* RMSE (whole-trajectory simulation) is within a tol
 full network's; then retrains a network that corrects only those equations — and, when the last
 kept equation is a measured state's, for each of the next ``mask.rivals`` unmeasured states in the
 ranking, one with the last kept equation swapped for it. The set whose retrained network validates
-best is kept. (The ranking favours what a warm start could
+best is kept (a set equal to the source network's own is not retrained: that would reproduce it,
+so the source network stands for it). (The ranking favours what a warm start could
 fit — the equations of measured states; a correction needed on a hidden state's equation can hide
 behind one on the measured state downstream, and only a network trained on it alone shows it.)
 """
@@ -14,6 +15,7 @@ behind one on the measured state downstream, and only a network trained on it al
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 from omegaconf import OmegaConf
@@ -63,6 +65,14 @@ def _retrain(work: Any, problem: Any, names: list[str], train: Any) -> Any:
         return train(cfg, problem)
     except TrainingDiverged as exc:
         return exc
+
+
+@dataclass
+class SourceNetwork:
+    """The mask's source network standing for a retraining of its own equation set (``val_rmse``:
+    its validation RMSE): that retraining would reproduce it."""
+
+    val_rmse: float
 
 
 def _val(result: Any) -> float:
@@ -152,9 +162,15 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         work = OmegaConf.merge(work, OmegaConf.from_dotlist([str(o) for o in mc.train_overrides]))
         measured = {problem.model.state_names[i] for _, i in measured_states(problem)}
         sets = [kept] + ([] if mc.keep else rivals(kept, [n for n, _ in ranking], int(mc.rivals), measured))
-        tried = [(names, _retrain(work, problem, names, train)) for names in sets]
+        # retraining the source network's own set with the source's settings gives the source network
+        # (same configuration, same seed): it stands for itself
+        same = sorted(kept) == sorted(hybrid.spec.corrected) and not list(mc.train_overrides)
+        tried = [(names, SourceNetwork(full) if same and names is kept else _retrain(work, problem, names, train))
+                 for names in sets]
         if any(not isinstance(r, Exception) for _, r in tried):
             kept, result = best_retrained(tried, float(mc.tolerance))
+            if isinstance(result, SourceNetwork):
+                result = None  # the source network goes on, its corrections masked to the kept set
         else:  # no retraining could be simulated: the source network, masked to the kept set, goes on
             print(f"Every retrained candidate set diverged ({tried[0][1]}); the source network goes on with "
                   f"its corrections masked to {', '.join(kept)}.")
@@ -178,7 +194,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         else:  # the source network; the kept outputs are recorded in the tag physmend.kept
             from physmend.ude.artifacts import artifacts_of
 
-            log_artifacts(run_, artifacts_of(hybrid, {"val.rmse": full}))
+            # its validation RMSE with only the kept corrections (all of them: the full network's)
+            val = full if sorted(kept) == sorted(hybrid.spec.corrected) else dict(by_k).get(k, full)
+            run_.log_metrics({"val.rmse": val})
+            log_artifacts(run_, artifacts_of(hybrid, {"val.rmse": val}))
         run_id = run_.run_id
     lines = [f"# physmend mask — source trial {src_run.info.run_id}", "",
              "Corrections ranked by mean |ΔNN| / max |du/dt| on the training samples:", ""]
@@ -191,6 +210,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}" + ("  <- kept" if names == kept else "")
                   for names, r in tried]
     lines += [f"Kept k = {k}: {', '.join(kept_in_order)} (tolerance {float(mc.tolerance):.0%})."]
+    if result is None and bool(mc.retrain) and sorted(kept) == sorted(hybrid.spec.corrected):
+        lines.append("The kept set is the source network's own: it goes on as it is (a retraining would reproduce it).")
     if result is not None:
         lines.append(f"Retrained with {k} output(s): validation RMSE {result.val_rmse:.4g}, "
                      f"test RMSE {result.metrics.get('test.rmse', float('nan')):.4g}.")

@@ -194,10 +194,16 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         else:  # the source network; the kept outputs are recorded in the tag physmend.kept
             from physmend.ude.artifacts import artifacts_of
 
-            # its validation RMSE with only the kept corrections (all of them: the full network's)
-            val = full if sorted(kept) == sorted(hybrid.spec.corrected) else dict(by_k).get(k, full)
-            run_.log_metrics({"val.rmse": val})
-            log_artifacts(run_, artifacts_of(hybrid, {"val.rmse": val}))
+            # its whole-trajectory metrics with only the kept corrections, held-out experiments too (reported,
+            # chosen by nothing)
+            hybrid.keep_only(kept)
+            try:
+                metrics = {k_: v for k_, v in evaluate(hybrid, problem, work).items() if math.isfinite(v)}
+            except TrainingDiverged:
+                metrics = {"val.rmse": full if sorted(kept) == sorted(hybrid.spec.corrected) else dict(by_k).get(k, full)}
+            hybrid.keep_only(hybrid.spec.corrected)
+            run_.log_metrics(metrics)
+            log_artifacts(run_, artifacts_of(hybrid, metrics))
         run_id = run_.run_id
     lines = [f"# physmend mask — source trial {src_run.info.run_id}", "",
              "Corrections ranked by mean |ΔNN| / max |du/dt| on the training samples:", ""]

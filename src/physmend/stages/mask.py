@@ -175,6 +175,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             print(f"Every retrained candidate set diverged ({tried[0][1]}); the source network goes on with "
                   f"its corrections masked to {', '.join(kept)}.")
     kept_in_order = [n for n in problem.model.state_names if n in kept]
+    own = sorted(kept) == sorted(hybrid.spec.corrected)  # the kept set is all the source network corrects
     if result is not None:
         work.ude.corrected = kept_in_order  # the retrained network's configuration
     with stage_run(store, work, stage=STAGE, source_run_id=src_run.info.run_id, run_name="mask",
@@ -200,7 +201,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             try:
                 metrics = {k_: v for k_, v in evaluate(hybrid, problem, work).items() if math.isfinite(v)}
             except TrainingDiverged:
-                metrics = {"val.rmse": full if sorted(kept) == sorted(hybrid.spec.corrected) else dict(by_k).get(k, full)}
+                metrics = {"val.rmse": full if own else dict(by_k).get(k, full)}
             hybrid.keep_only(hybrid.spec.corrected)
             run_.log_metrics(metrics)
             log_artifacts(run_, artifacts_of(hybrid, metrics))
@@ -216,7 +217,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}" + ("  <- kept" if names == kept else "")
                   for names, r in tried]
     lines += [f"Kept k = {k}: {', '.join(kept_in_order)} (tolerance {float(mc.tolerance):.0%})."]
-    if result is None and bool(mc.retrain) and sorted(kept) == sorted(hybrid.spec.corrected):
+    if result is None and bool(mc.retrain) and own:
         lines.append("The kept set is the source network's own: it goes on as it is (a retraining would reproduce it).")
     if result is not None:
         lines.append(f"Retrained with {k} output(s): validation RMSE {result.val_rmse:.4g}, "

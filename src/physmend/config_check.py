@@ -27,6 +27,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "train.schedule": ("cosine", "none"),
     "train.warm_start": ("auto", "none"),
     "train.segment_starts": ("chained", "forced"),
+    "ude.units": ("equation", "state"),
     "simulate.dtype": ("float64", "float32"),
 }
 
@@ -50,6 +51,7 @@ RANGES: dict[str, tuple[float, float]] = {
     "mask.tolerance": (0.0, math.inf),
     "train.continuity_weight": (0.0, math.inf),
     "train.restarts": (0, math.inf),
+    "train.polish": (0.0, math.inf),
 }
 
 class SettingError(ValueError):

@@ -18,7 +18,8 @@ from physmend.ude.warmstart import WARM_STATS, forget_warm_starts
 
 # the oscillator of tests/conftest.py; an explicit solver keeps whole-trajectory evaluations short
 BASE = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=4",
-        "train.eval_every=2", "train.patience=0", "simulate=explicit", "simulate.rtol=1e-5", "simulate.atol=1e-6"]
+        "train.eval_every=2", "train.patience=0",
+        "train.polish=0", "simulate=explicit", "simulate.rtol=1e-5", "simulate.atol=1e-6"]
 # three trials that share the solve but nothing else
 TRIALS = [
     ["seed=1", "ude.width=8", "ude.depth=1", "ude.activation=tanh", "train.lr=0.02"],

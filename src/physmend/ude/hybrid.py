@@ -3,7 +3,13 @@
 ``z`` are normalised network inputs (states, chosen observed variables, exogenous inputs, chosen
 parameters), ``M`` selects the corrected equations and ``s`` scales each correction to the
 typical size of its state's derivative, so that a freshly initialised network perturbs the
-physics only slightly. Parameters declared uncertain can be estimated jointly (kept inside
+physics only slightly.
+
+With ``units: equation`` (the default) the network's output is a term of the equation
+``a_i(p)·der(x_i) = …`` in that equation's own units (a heat flow in W, a force in N, a current in
+A) and is divided by ``a_i(p)``: missing physics is a missing flow or force, the same whatever the
+capacity, mass or volume of the experiment, so a network need not learn ``1/a_i`` and carries over
+to an experiment whose capacity training never saw. ``units: state`` corrects ``du_i/dt`` directly. Parameters declared uncertain can be estimated jointly (kept inside
 their bounds by a sigmoid).
 """
 
@@ -61,6 +67,11 @@ class HybridSpec:
     std: list[float]
     out_scale: list[float]
     estimated: list[str] = field(default_factory=list)
+    #: "equation": the network's outputs are terms of ``a_i·der(x_i) = …`` in its units (divided by
+    #: ``a_i(p)``); "state": rates ``du_i/dt`` (specs stored before the choice existed)
+    units: str = "state"
+    #: each correction's typical initial size in state units per second (empty: ``out_scale``)
+    rate_scale: list[float] = field(default_factory=list)
     #: per state, its range over the training samples of the model as written (None: the model as
     #: written holds it constant, so no scale is known and it is not bounded); empty: not recorded
     state_low: list[float | None] = field(default_factory=list)
@@ -86,6 +97,22 @@ class HybridSpec:
     @property
     def input_names(self) -> list[str]:
         return self.in_states + self.in_observed + self.in_inputs + self.in_parameters
+
+
+def der_coefficients(problem_or_model: Any, names: Sequence[str]) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``coef(p) -> (..., k)``: ``a_i(p)`` of each equation ``a_i·der(x_i) = …`` of ``names`` for
+    parameters ``p (..., n_params)`` (a model, or anything with a ``.model``)."""
+    from physmend.modeling.compile import lambdify_torch
+
+    model = getattr(problem_or_model, "model", problem_or_model)
+    fn = lambdify_torch([v.symbol for v in model.parameters], [model.der_coefficient.get(n, 1) for n in names],
+                        "der coefficients")
+
+    def coef(p: torch.Tensor) -> torch.Tensor:
+        vals = fn(*p.unbind(-1))
+        return torch.stack([torch.as_tensor(v, dtype=p.dtype, device=p.device).expand(p.shape[:-1]) for v in vals], -1)
+
+    return coef
 
 
 def make_mlp(n_in: int, widths: Sequence[int], n_out: int, activation: str) -> nn.Sequential:
@@ -125,6 +152,9 @@ class HybridModel(nn.Module):
         self.register_buffer("mean", torch.tensor(spec.mean, dtype=dtype))
         self.register_buffer("std", torch.tensor(spec.std, dtype=dtype))
         self.register_buffer("out_scale", torch.tensor(spec.out_scale, dtype=dtype))
+        self.register_buffer("rate_scale", torch.tensor(spec.rate_scale or spec.out_scale, dtype=dtype), persistent=False)
+        #: ``a_i(p)`` of the corrected equations (``units: equation``), else None
+        self.coefficients = der_coefficients(compiled.model, spec.corrected) if spec.units == "equation" and spec.corrected else None
         # 1 keeps a correction, 0 masks it (output masking evaluates top-k subsets this way)
         self.register_buffer("out_mask", torch.ones(len(spec.corrected), dtype=dtype), persistent=False)
         self.net = make_mlp(spec.n_inputs, spec.widths, len(spec.corrected), spec.activation).to(dtype)
@@ -174,10 +204,12 @@ class HybridModel(nn.Module):
     def corrections(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Network corrections ``(..., B, n_corrected)`` in state units per second."""
         z = (self.features(u, x, p) - self.mean) / self.std
-        return self.net(z) * (self.out_scale * self.out_mask)
+        out = self.net(z) * (self.out_scale * self.out_mask)
+        return out if self.coefficients is None else out / self.coefficients(p)
 
     def corrections_of_z(self, z: torch.Tensor) -> torch.Tensor:
-        """Corrections from normalised features ``z (..., n_features)`` (for sensitivities)."""
+        """Corrections from normalised features ``z (..., n_features)`` (for sensitivities), in the
+        network's own units (the equation's with ``units: equation``: not divided by ``a_i``)."""
         return self.net(z) * (self.out_scale * self.out_mask)
 
     def keep_only(self, names: list[str]) -> None:

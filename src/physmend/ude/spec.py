@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from physmend.problem import Problem
-from physmend.ude.hybrid import HybridSpec, UDEConfigError, match_names
+from physmend.ude.hybrid import HybridSpec, UDEConfigError, der_coefficients, match_names
 from physmend.ude.reference import Reference, _stats, _train_mask
 
 
@@ -88,10 +88,17 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
         p = ref.batch.params[:, [cm.parameter_names.index(n) for n in in_params]]
         feats.append(p[None].expand(ref.states.shape[0], -1, -1))
     mean, std = _stats(torch.cat(feats, -1), mask)
-    d = ref.derivs[..., [cm.state_names.index(n) for n in corrected]][mask]
-    rms = d.pow(2).mean(0).sqrt()
-    if corrected:
-        rms = torch.where(rms > 0, rms, torch.ones_like(rms) * rms.max().clamp_min(1e-9))
+    units = str(ude.get("units", "equation"))
+    if units not in ("equation", "state"):
+        raise UDEConfigError(f"ude.units must be 'equation' or 'state', but got {units!r}")
+    idx = [cm.state_names.index(n) for n in corrected]
+    d = ref.derivs[..., idx][mask]
+    rms = _rms(d)
+    rate_rms = rms
+    if units == "equation" and corrected:
+        # the same size in the equation's own units: a_i·du_i/dt (W for a heat balance, N for a force)
+        coef = der_coefficients(problem, corrected)(ref.batch.params)  # (B, k)
+        rms = _rms((ref.derivs[..., idx] * coef[None])[mask])
     return HybridSpec(
         corrected=corrected,
         in_states=in_states,
@@ -103,9 +110,19 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
         mean=mean.tolist(),
         std=std.tolist(),
         out_scale=(float(ude.output_scale) * rms).tolist(),
+        units=units,
+        rate_scale=(float(ude.output_scale) * rate_rms).tolist(),
         estimated=estimated,
         **state_range(ref.states, mask),
     )
+
+
+def _rms(d: torch.Tensor) -> torch.Tensor:
+    """RMS of each column of ``d (N, k)``; a column that is all zero gets the largest RMS (or 1e-9)."""
+    rms = d.pow(2).mean(0).sqrt()
+    if rms.numel():
+        rms = torch.where(rms > 0, rms, torch.ones_like(rms) * rms.max().clamp_min(1e-9))
+    return rms
 
 
 #: a state's range is at least this share of its magnitude (a nearly constant temperature in kelvin

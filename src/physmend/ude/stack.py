@@ -160,11 +160,13 @@ class _Stack:
         z = (self.template.features(u, x, p) - self.mean) / self.std
         *lead, rows, n_feat = z.shape
         r = rows // m
+        coef = self.template.coefficients
         if not lead:
-            return net(z.reshape(m, r, n_feat)).reshape(rows, -1)
+            out = net(z.reshape(m, r, n_feat)).reshape(rows, -1)
+            return out if coef is None else out / coef(p)
         zz = z.reshape(*lead, m, r, n_feat).movedim(-3, 0).reshape(m, -1, n_feat)
-        out = net(zz)
-        return out.reshape(m, *lead, r, -1).movedim(0, -3).reshape(*lead, rows, -1)
+        out = net(zz).reshape(m, *lead, r, -1).movedim(0, -3).reshape(*lead, rows, -1)
+        return out if coef is None else out / coef(p)
 
     def _rhs(self, net: _Net, m: int, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``f(u, x) -> du/dt`` over stacked rows, structured as :meth:`HybridModel.rhs`."""
@@ -257,7 +259,7 @@ class _Stack:
         fit_models(self.problem, forced, self.template.corrected_idx, models=m,
                    corrections=lambda u, x, p: self._corrections(self.net, m, u, x, p),
                    parameters=lambda: self._parameters_for(p_exp, self.est_raw, m),
-                   typical=self.net.scale[:, 0, :], params=[p for p, *_ in self.params[:n_fit]],
+                   typical=torch.stack([mem.hybrid.rate_scale * mem.hybrid.out_mask for mem in self.members]), params=[p for p, *_ in self.params[:n_fit]],
                    masks=[mk for _, mk, *_ in self.params[:n_fit]], iterations=iterations, window=window)
         for p, *_ in self.params:
             p.grad = None

@@ -60,6 +60,7 @@ from physmend.ude.stack_members import _check_same_shape, _prepare, _shared_warm
 from physmend.ude.stack_plan import _setup
 from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
+from physmend.ude.polish import Polisher, polish_iterations
 from physmend.ude.reference import Reference, _sim_opts
 from physmend.ude.schedule import _lr_schedule, cycle_of, restarts, stops_at
 from physmend.ude.shooting import BOX_MARGIN, Shooting, pinned_starts, segments_finite
@@ -293,6 +294,7 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
         checkpoint(warm, 0, None, None, known)
         drop_done()
     cycles = 1 + restarts(tc)
+    epoch = 0
     for epoch in range(1, epochs * cycles + 1):
         if epoch > epochs and (epoch - 1) % epochs == 0:  # a cycle ended: the models that need it go on
             for mem in stack.members:  # with their schedule restarted (stops_at)
@@ -317,10 +319,43 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
             if live:
                 checkpoint(live, epoch, loss, fit)
         drop_done()
+    last = max((int(r["epoch"]) for mem in members for r in mem.history), default=epoch)  # the last checkpoint
+    polish = polish_iterations(tc)
+    ready = [mem for mem in members if mem.outcome is None and mem.best is not None]
+    if polish > 0 and ready:  # every model with a checkpoint, from its best one, as train() polishes
+        for mem in ready:
+            assert mem.best is not None
+            mem.hybrid.load_state_dict(mem.best[1])
+            mem.done, mem.since_best = False, 0
+        stack = _Stack(ready, problem, ref, plan, cfg)
+        polisher = Polisher(_masked(stack))
+        done_iters = 0
+        while done_iters < polish and stack.members:
+            step = min(eval_every, polish - done_iters)
+            if not polisher.run(stack.losses, step):
+                break
+            done_iters += step
+            with torch.no_grad():
+                loss, fit = stack.losses()
+            checkpoint(list(range(stack.size)), last + done_iters, loss, fit)
+            if polisher.stalled:
+                break
+            if any(mem.done for mem in stack.members):  # fewer rows: a new L-BFGS over the rest
+                drop_done()
+                polisher = Polisher(_masked(stack))
     for mem in members:  # every checkpoint failed: the last failure is the outcome
         if mem.outcome is None and mem.best is None:
             mem.outcome = mem.failed or TrainingDiverged("no checkpoint was evaluated (train.epochs < 1?)")
     return members
+
+
+def _masked(stack: _Stack) -> list[torch.Tensor]:
+    """The stack's trained tensors, each gradient masked to its real entries (padded units stay zero
+    under L-BFGS as under the stack's own Adam step)."""
+    for p, mk, *_ in stack.params:
+        if mk is not None:
+            p.register_hook(lambda g, mk=mk: torch.where(mk, g, torch.zeros_like(g)))
+    return [p for p, *_ in stack.params]
 
 
 def _final_batched(done: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig,

@@ -27,6 +27,7 @@ from physmend.ude.artifacts import artifacts_of, fit_figures
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import _evaluate, checkpoint_problem
 from physmend.ude.outcome import TrainResult, TrainingDiverged
+from physmend.ude.polish import polish_iterations, polish_lbfgs
 from physmend.ude.reference import _sim_opts, _train_mask, reference
 from physmend.ude.schedule import _chain, cycle_of, lr_factor, restarts, stops_at
 from physmend.ude.shooting import _equation_scale, _initial_segments, _output_spread, chained_starts, plan_shooting, rk4_segments
@@ -97,6 +98,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     sim = _sim_opts(cfg)
     eval_every = max(1, int(tc.eval_every))
     patience = int(tc.patience)
+    polish = polish_iterations(tc)
     cont_w = float(tc.continuity_weight)
     sparsity = float(tc.get("sparsity", 0.0))
     eq_coef, eq_ref = _equation_scale(problem, spec, params_seg, ref)
@@ -135,12 +137,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
             report(epoch, row)
         return patience > 0 and since_best >= patience
 
-    if forced is not None:  # the warm start itself is a candidate (it may already be the best fit)
-        checkpoint(0, float("nan"), float("nan"))
-    for epoch in range(1, epochs * cycles + 1):
-        if stops_at(epoch, epochs, good_cycle):
-            break  # a cycle ended after the model had been good long enough: no restart
-        opt.zero_grad(set_to_none=True)
+    def objective() -> tuple[torch.Tensor, torch.Tensor]:
+        """The multiple-shooting loss of the current network, segment starts and estimates."""
         p = hybrid.parameters_for(params_seg)
         u0 = torch.where(pinned, fixed_first, torch.clamp(seg0 + free * state_scale, lo, hi))
         traj = rk4_segments(hybrid.rhs(p), u0, plan, box)  # (K+1, S, n)
@@ -158,6 +156,17 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
             # relative to the typical size of those terms: few, direct corrections are cheapest
             corr = hybrid.corrections(traj, plan.x_half[0::2], p) * eq_coef  # (K+1, S, k)
             loss = loss + sparsity * (corr.pow(2).mean(dim=(0, 1)).add(1e-30).sqrt() / eq_ref).sum()
+        return loss, fit
+
+    if forced is not None:  # the warm start itself is a candidate (it may already be the best fit)
+        checkpoint(0, float("nan"), float("nan"))
+    epoch = 0
+    for epoch in range(1, epochs * cycles + 1):
+        if stops_at(epoch, epochs, good_cycle):
+            epoch -= 1
+            break  # a cycle ended after the model had been good long enough: no restart
+        opt.zero_grad(set_to_none=True)
+        loss, fit = objective()
         if not torch.isfinite(loss):
             raise TrainingDiverged(f"training loss became non-finite at epoch {epoch} (lr {float(tc.lr):g}); "
                                    "try a smaller train.lr or train.step")
@@ -167,6 +176,11 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         sched.step()
         if (epoch % eval_every == 0 or epoch % epochs == 0) and checkpoint(epoch, float(loss.detach()), float(fit.detach())):
             break
+    if best is not None and polish > 0:
+        hybrid.load_state_dict(best[1])
+        since_best = 0
+        polish_lbfgs(objective, [*hybrid.net.parameters(), free, *([hybrid.est_raw] if spec.estimated else [])],
+                     polish, eval_every, lambda k, loss, fit: checkpoint(epoch + k, float(loss), float(fit)))
     if best is None:  # every checkpoint failed
         raise failed or TrainingDiverged("no checkpoint was evaluated")
     hybrid.load_state_dict(best[1])

@@ -161,7 +161,7 @@ def fit_network(hybrid: HybridModel, problem: Problem, batch: Batch, forced: For
     params = list(hybrid.net.parameters()) + ([hybrid.est_raw] if hybrid.est_idx else [])
     stats = fit_models(problem, forced, hybrid.corrected_idx, models=1,
                        corrections=hybrid.corrections, parameters=lambda: hybrid.parameters_for(p_exp),
-                       typical=hybrid.out_scale[None], params=params, iterations=iterations, lr=lr, window=window)
+                       typical=hybrid.rate_scale[None], params=params, iterations=iterations, lr=lr, window=window)
     return {k: float(v[0]) for k, v in stats.items()}
 
 

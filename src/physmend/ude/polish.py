@@ -1,0 +1,95 @@
+"""Polishing a trained hybrid with L-BFGS after Adam (``train.polish``).
+
+The multiple-shooting loss is deterministic and full-batch: every epoch is one batched solve of
+every segment. Adam's steps are about ``lr`` long whatever the curvature, so a network that must
+move far (a correction of an unmeasured state that no warm start could set) is still descending
+when its schedule ends. A quasi-Newton method on the same loss (L-BFGS with a strong-Wolfe line
+search, the usual second phase of universal-differential-equation training) takes the rest of the
+way in a fraction of the solves. The whole-trajectory checkpoints keep judging: the best
+checkpoint by validation RMSE is still the one kept, so polishing can only help the chosen model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import torch
+
+from physmend.ude.hybrid import UDEConfigError
+
+#: remembered curvature pairs of L-BFGS
+HISTORY = 20
+
+#: ``objective() -> (loss, fit)``: the loss L-BFGS minimises (its sum, for several models at once)
+#: and the fit part, each a tensor ``()`` or ``(M,)``
+Objective = Callable[[], tuple[torch.Tensor, torch.Tensor]]
+
+
+def polish_iterations(tc: Any) -> int:
+    """L-BFGS iterations after Adam: ``train.polish`` (a share of ``train.epochs``; 0: none)."""
+    share = float(tc.get("polish", 0.0))
+    if not share >= 0.0:
+        raise UDEConfigError(f"train.polish must be a share of train.epochs ≥ 0, but got {share!r}")
+    return int(round(share * int(tc.epochs)))
+
+
+class Polisher:
+    """L-BFGS (strong-Wolfe line search) over ``params``, run a few iterations at a time so that the
+    caller can checkpoint in between; its curvature memory lasts as long as the object."""
+
+    def __init__(self, params: Sequence[torch.Tensor]) -> None:
+        self.params = [p for p in params if p.numel()]
+        self.opt = (torch.optim.LBFGS(self.params, lr=1.0, history_size=HISTORY, line_search_fn="strong_wolfe",
+                                      tolerance_grad=1e-12, tolerance_change=1e-14) if self.params else None)
+        self.iterations = 0
+        self.stalled = False  # L-BFGS stopped early: no more progress to make
+
+    def run(self, objective: Objective, n: int) -> bool:
+        """At most ``n`` more iterations on ``objective``; False (parameters restored to where the
+        call began) when a step left the finite range."""
+        if self.opt is None or n <= 0 or self.stalled:
+            self.stalled = True
+            return True
+        saved = [p.detach().clone() for p in self.params]
+        opt = self.opt
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad(set_to_none=True)
+            loss = objective()[0].sum()
+            if not torch.isfinite(loss):  # the line search backs off from a step out of the finite range
+                return loss.detach().new_tensor(float("inf"))
+            loss.backward()
+            return loss
+
+        opt.param_groups[0]["max_iter"] = n
+        loss = opt.step(closure)
+        before = self.iterations
+        self.iterations = int(opt.state[self.params[0]].get("n_iter", before + n))
+        self.stalled = self.iterations < before + n
+        finite = loss is not None and bool(torch.isfinite(loss.detach())) and all(bool(torch.isfinite(p).all()) for p in self.params)
+        if not finite:
+            with torch.no_grad():
+                for p, s in zip(self.params, saved):
+                    p.copy_(s)
+        return finite
+
+
+def polish_lbfgs(objective: Objective, params: Sequence[torch.Tensor], iterations: int, every: int,
+                 checkpoint: Callable[[int, torch.Tensor, torch.Tensor], bool]) -> int:
+    """Minimise ``objective`` over ``params`` for at most ``iterations`` L-BFGS iterations, calling
+    ``checkpoint(k, loss, fit)`` (k: iterations so far; the current loss and fit) after every
+    ``every`` of them; it returns True to stop. Ends at a step out of the finite range (parameters
+    of the last checkpoint restored) or when L-BFGS makes no more progress. Returns the iterations done."""
+    polisher = Polisher(params)
+    done = 0
+    while done < iterations and polisher.opt is not None:
+        step = min(max(1, every), iterations - done)
+        if not polisher.run(objective, step):
+            break
+        done += step
+        with torch.no_grad():
+            loss, fit = objective()
+        if checkpoint(done, loss, fit) or polisher.stalled:
+            break
+    return done

@@ -72,6 +72,9 @@ def test_refit_recovers_the_drag_constant(user_project: Path, monkeypatch: pytes
     assert result.loss_after < 0.1 * result.loss_before
     assert abs(c1 + 0.9) < 0.05, c1
     assert fitted[0].term == DRAG and fitted[0].state == "cart.v"
+    # its standard error (LM Jacobian at the end): small, and the truth within a few of them
+    se = result.stderr["cart.v_c1"]
+    assert 0 < se < 0.05 and abs(c1 + 0.9) < 5 * se + 0.01 and result.pinned("cart.v_c1"), (c1, se)
     before = corrected_metrics(problem, ref)
     refitted = with_parameters(problem, {"cart.v_c1": c1})
     ref_after, trouble = simulate_corrected(refitted, cfg)
@@ -99,6 +102,22 @@ def test_an_unknown_initial_value_is_fitted_with_the_constants(user_project: Pat
     assert bool((~shoot.pinned[first, 1]).all()) and bool(shoot.pinned[first, 0].all())  # v free, x known
     fitted, result = refit(cfg, problem, ref, corrections, 30)
     assert abs(fitted[0].constants["c1"] + 0.9) < 0.05, (fitted[0].constants, result)
+
+
+def test_constants_the_data_cannot_tell_apart_are_not_pinned_down(user_project: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    """Only the sum of c1 and c2 shapes the trajectories: neither is pinned down by the data."""
+    monkeypatch.chdir(user_project)
+    cfg = compose(TINY, user_config_dir=user_project / "my_conf")
+    corrections = [Correction(state="cart.v", term="(c1 + c2)*cart.v*Abs(cart.v)", constants={"c1": -0.2, "c2": -0.3}, unit="N")]
+    problem = corrected_problem(cfg, corrections)
+    ref, trouble = simulate_corrected(problem, cfg)
+    assert trouble is None
+    fitted, result = refit(cfg, problem, ref, corrections, 20)
+    total = sum(fitted[0].constants.values())
+    assert abs(total + 0.9) < 0.05, fitted[0].constants  # the sum is what the data say
+    assert set(result.stderr) == {"cart.v_c1", "cart.v_c2"}
+    assert not result.pinned("cart.v_c1") and not result.pinned("cart.v_c2"), result.stderr
 
 
 def test_refit_names_unknown_parameters(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -26,10 +26,13 @@ weighed against none (:func:`drop_needless`).
 
 from __future__ import annotations
 
+import math
+
 from typing import Any
 
 import numpy as np
 import sympy as sp
+from omegaconf import OmegaConf
 import torch
 
 from physmend.symbolic.choice import (  # noqa: F401 - the stage's pieces, importable from here too
@@ -228,12 +231,13 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     simulated = [s for s in kept if select == "recorded" and choices.get(s) is None
                  and (rates is None or s not in rates.targets)]
     recorded_scores: dict[str, list[tuple[float, float]]] = {}
+    operators = OmegaConf.to_container(cfg.operators) if "operators" in cfg else None  # checked when composed
     for state in kept:
         front = fit(X, y_all[state], x_names, backend=str(sc.backend), target=state, units=units,
-                    options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)))
+                    options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)), operators=operators)
         if select == "recorded":
-            front.candidates = sorted(front.candidates + catalogue_candidates(x_names, units, columns, y_all[state]),
-                                      key=lambda c: (c.complexity, c.mse))
+            extra = catalogue_candidates(x_names, units, columns, y_all[state], operators=operators)
+            front.candidates = sorted(front.candidates + extra, key=lambda c: (c.complexity, c.mse))
         fronts[state] = front
         if rates is not None and state in rates.targets and choices.get(state) is None:
             i, why, recorded_scores[state] = choose_by_recordings(rates, state, front)
@@ -266,6 +270,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         fallback += f" Formula {picks[worst][0]} for {worst} made the corrected model fail ({trouble}); fell back to {i}."
         picks[worst] = (i, f"Fallback along the front to index {i} (a more complex formula made the corrected model unstable).")
     metrics = before = corrected_metrics(corrected, ref)
+    uncertainty: dict[str, dict[str, Any]] = {}  # re-fitted constant -> value, standard error, pinned down?
     iterations = int(sc.refit_epochs)
     if iterations > 0:
         fitted, result = refit(work, corrected, ref, corrections, iterations)
@@ -280,7 +285,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         if after["val.rmse"] < before["val.rmse"]:
             corrections, metrics, full = fitted, after, with_parameters(full, values)
             refit_note = (f"constants re-fitted through the simulator ({how}; validation RMSE "
-                          f"{before['val.rmse']:.4g} → {after['val.rmse']:.4g})")
+                          f"{before['val.rmse']:.4g} → {after['val.rmse']:.4g})" + _uncertainty_note(result))
+            uncertainty = {k: {"value": result.constants[k], "stderr": result.stderr.get(k, math.inf),
+                               "pinned": result.pinned(k)} for k in result.constants}
         elif ref_after is None:
             refit_note = (f"the constants re-fitted through the simulator ({how}) made the corrected model fail "
                           f"({trouble}); the regression's constants are kept")
@@ -295,6 +302,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         run_.log_params({"backend": sc.backend, "rule": sc.rule, "inputs": ",".join(x_names)})
         run_.log_json({s: f.to_dict() for s, f in fronts.items()}, "pareto.json")
         run_.log_json(chosen, "chosen.json")
+        if uncertainty:
+            run_.log_json(uncertainty, "uncertainty.json")
         from physmend.modeling.corrections import FORMAT
 
         import yaml
@@ -329,3 +338,17 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     print("\n".join(lines))
     print(f"\nsymbolic run: {run_id}\nnext: physmend propose {run_id}")
     return run_id
+
+
+def _uncertainty_note(result: Any) -> str:
+    """``; c1 = -0.15 ± 0.0002 (±0.1 %)`` for each re-fitted constant, and which the data cannot pin down."""
+    parts = []
+    for name, value in result.constants.items():
+        se = result.stderr.get(name, math.inf)
+        short = name.rsplit(".", 1)[-1]
+        if not math.isfinite(se):
+            parts.append(f"{short} = {value:.4g} (the data cannot pin it down)")
+        else:
+            rel = f" (±{100 * se / abs(value):.2g} %)" if value else ""
+            parts.append(f"{short} = {value:.4g} ± {se:.2g}{rel}" + ("" if result.pinned(name) else ", not pinned down by the data"))
+    return ("; " + "; ".join(parts)) if parts else ""

@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -59,6 +59,10 @@ class RefitResult:
         iterations: accepted Levenberg–Marquardt steps.
         converged: True when the relative loss decrease fell below the tolerance (or no step
             could lower the loss any more); False when ``max_iterations`` ran out first.
+        stderr: parameter name -> standard error of the re-fitted value, in its own units, from
+            the Levenberg–Marquardt Jacobian at the end (``s²·(JᵀJ)⁻¹`` with ``s²`` the loss per
+            degree of freedom; the segment starts are unknowns too); ``inf`` where the data cannot
+            pin the constant down (a singular or indefinite ``JᵀJ``). Empty when nothing was fitted.
     """
 
     constants: dict[str, float]
@@ -66,6 +70,12 @@ class RefitResult:
     loss_after: float
     iterations: int
     converged: bool
+    stderr: dict[str, float] = field(default_factory=dict)
+
+    def pinned(self, name: str, share: float = 0.5) -> bool:
+        """Whether the data pin constant ``name`` down: its standard error is below ``share`` of its size."""
+        se = self.stderr.get(name, math.inf)
+        return math.isfinite(se) and se < share * abs(self.constants.get(name, 0.0))
 
 
 class _Shooting:
@@ -288,4 +298,24 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
         if gain < rtol:
             converged = True
             break
-    return RefitResult(dict(zip(shoot.names, theta.tolist())), before, loss, it, converged)
+    stderr = _standard_errors(shoot, theta, v, solved, loss)
+    return RefitResult(dict(zip(shoot.names, theta.tolist())), before, loss, it, converged, stderr)
+
+
+def _standard_errors(shoot: _Shooting, theta: torch.Tensor, v: torch.Tensor, solved: Any, loss: float) -> dict[str, float]:
+    """Standard errors of the constants: ``sqrt(s²·[(JᵀJ)⁻¹]_kk)`` at ``(θ, v)`` (see :class:`RefitResult`)."""
+    import warnings
+
+    J = shoot.jacobian(theta, v, solved)
+    rows, unknowns = J.shape
+    s2 = loss / max(rows - unknowns, 1)
+    rhs = np.zeros((unknowns, shoot.K))
+    rhs[np.arange(shoot.K), np.arange(shoot.K)] = 1.0
+    with warnings.catch_warnings():  # a singular JᵀJ: the constant is not pinned down (inf below)
+        warnings.simplefilter("ignore")
+        try:
+            cols = np.asarray(spla.spsolve((J.T @ J).tocsc(), rhs)).reshape(unknowns, shoot.K)
+            var = np.diag(cols[:shoot.K]) * s2
+        except (RuntimeError, ValueError):
+            var = np.full(shoot.K, np.nan)
+    return {name: float(np.sqrt(x)) if np.isfinite(x) and x >= 0 else math.inf for name, x in zip(shoot.names, var)}

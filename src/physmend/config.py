@@ -130,8 +130,25 @@ def compose(
         check_settings(cfg, choices, config_dir())
     except SettingError as exc:
         raise ConfigError(str(exc)) from None
+    if "operators" in cfg:
+        from physmend.symbolic.operators import OperatorError, check_operators
+
+        where = _option_file("operators", choices.get("operators", "default"), [*search, config_dir()])
+        try:
+            check_operators(OmegaConf.to_container(cfg.operators), where)
+        except OperatorError as exc:
+            raise ConfigError(str(exc)) from None
     OmegaConf.set_struct(cfg, True)
     return cfg
+
+
+def _option_file(group: str, choice: str, dirs: Sequence[Path]) -> str:
+    """The file a group's option was composed from (the first of ``dirs`` that has it), for messages."""
+    for d in dirs:
+        path = Path(d) / group / f"{choice}.yaml"
+        if path.is_file():
+            return str(path)
+    return f"{group}={choice}"
 
 
 def to_yaml(cfg: DictConfig) -> str:

@@ -104,6 +104,7 @@ def fit(
     units: dict[str, str] | None = None,
     options: dict | None = None,
     seed: int = 0,
+    operators: Mapping[str, int] | None = None,
 ) -> ParetoFront:
     """Fit formulas ``y ≈ g(X)`` and return their Pareto front (accuracy vs complexity).
 
@@ -119,6 +120,10 @@ def fit(
             end takes ``max_points``: larger inputs are subsampled deterministically (by ``seed``)
             for the search, while MSE and R² are always computed on all points.
         seed: random seed of the search and the subsampling.
+        operators: operator name -> complexity price (:mod:`physmend.symbolic.operators`, the
+            ``operators`` config group): the operators every back end searches with (where
+            ``options`` do not name the back end's own setting) and the one rule that prices every
+            candidate's complexity. None: each back end's own defaults and size measure.
 
     Returns:
         The non-dominated formulas, complexity ascending; choose one with :func:`choose`.
@@ -134,6 +139,11 @@ def fit(
         raise BackendUnavailable(reason)
     X, y, names, units = _check_data(X, y, names, units)
     settings = module.resolve_options(dict(options or {}))
+    if operators is not None:
+        from physmend.symbolic.operators import check_operators
+
+        ops = check_operators(dict(operators), "operators")
+        settings = module.with_operators(settings, ops, set(options or {}))
     max_points = settings["max_points"]
     if isinstance(max_points, bool) or not isinstance(max_points, int) or max_points < MIN_POINTS:
         raise SymbolicError(f"symbolic option max_points must be an integer >= {MIN_POINTS}, but got {max_points!r}")
@@ -160,6 +170,10 @@ def fit(
         if not np.isfinite(y_hat).all():
             continue
         mse, r2 = mse_r2(y, y_hat)
+        if operators is not None:
+            from physmend.symbolic.operators import priced_size
+
+            complexity = priced_size(expr, ops)
         candidates.append(Candidate(expr, int(complexity), mse, r2, text or display(expr), dict(terms)))
     front = pareto_filter(candidates)
     if not raw:

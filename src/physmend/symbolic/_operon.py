@@ -87,6 +87,14 @@ def resolve_options(options: dict) -> dict[str, Any]:
     return resolve(options, DEFAULTS, backend="operon", extra=passthrough)
 
 
+def with_operators(settings: dict[str, Any], ops: dict[str, int], given: set[str]) -> dict[str, Any]:
+    """``allowed_symbols`` from the shared operators (:mod:`physmend.symbolic.operators`) unless the
+    back end's own ``allowed_symbols`` option was given."""
+    from physmend.symbolic.operators import operon_symbols
+
+    return settings if "allowed_symbols" in given else {**settings, "allowed_symbols": operon_symbols(ops)}
+
+
 def parse_model(text: str, names: list[str]) -> sympy.Expr:
     """Parse a pyoperon infix string written with stand-ins ``x0..`` into an expression in ``names``."""
     from physmend.modeling.errors import ModelError

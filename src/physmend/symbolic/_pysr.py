@@ -46,6 +46,14 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
+def with_operators(settings: dict[str, Any], ops: dict[str, int], given: set[str]) -> dict[str, Any]:
+    """``binary_operators``, ``unary_operators`` and ``complexity_of_operators`` from the shared
+    operators (:mod:`physmend.symbolic.operators`), each unless given as a back-end option."""
+    from physmend.symbolic.operators import pysr_operators
+
+    return {**settings, **{k: v for k, v in pysr_operators(ops).items() if k not in given}}
+
+
 def _julia_executable() -> str | None:
     """A Julia executable that exists on this machine, or None (nothing is imported or started)."""
     candidates = [shutil.which("julia"), os.environ.get("PYTHON_JULIAPKG_EXE")]

@@ -70,29 +70,65 @@ def resolve_options(options: dict) -> dict[str, Any]:
     return settings
 
 
-def library(X: np.ndarray, names: list[str], units: dict[str, str], *, radiation_unit: str = "K", products: bool = True) -> list[Term]:
-    """Candidate terms for inputs ``X (n, k)`` named ``names`` with ``units`` (name -> unit string)."""
+#: the term families of the library before operators were data (``operators`` not given)
+LEGACY = ("sub", "sqrt", "abs", "mul")
+
+
+def library(X: np.ndarray, names: list[str], units: dict[str, str], *, radiation_unit: str = "K", products: bool = True,
+            operators: Any = None) -> list[Term]:
+    """Candidate terms for inputs ``X (n, k)`` named ``names`` with ``units`` (name -> unit string).
+
+    ``operators`` (names, :mod:`physmend.symbolic.operators`) choose the families: ``sub`` the
+    same-unit differences ``d``; with ``sqrt`` and ``mul`` ``d·sqrt(|d|)`` (and ``u·sqrt(|u|)``),
+    with ``abs`` and ``mul`` ``d·|d|``, with ``mul`` the products ``d·u`` and ``u·v`` of any two
+    inputs, with ``sign`` ``sign(u)`` and ``sign(d)``, with ``max``/``min`` the one-way parts
+    ``max(d, 0)``/``min(d, 0)``. None: the families before operators were data (no ``u·v``, no
+    signed powers of single inputs)."""
+    ops = set(LEGACY if operators is None else operators)
+    legacy = operators is None
     n = X.shape[0]
     sym = [sympy.Symbol(s) for s in names]
     unit = [units.get(s) or None for s in names]
     terms = [Term(sympy.Integer(1), np.ones(n))]
     terms += [Term(sym[j], X[:, j]) for j in range(len(names))]
+    if not legacy:
+        for j in range(len(names)):
+            if "sqrt" in ops and "mul" in ops:
+                terms.append(Term(sym[j] * sympy.sqrt(sympy.Abs(sym[j])), X[:, j] * np.sqrt(np.abs(X[:, j]))))
+            if "sign" in ops:
+                terms.append(Term(sympy.sign(sym[j]), np.sign(X[:, j])))
+            if "mul" in ops and products:
+                for m in range(j + 1, len(names)):
+                    terms.append(Term(sym[j] * sym[m], X[:, j] * X[:, m]))
     for i in range(len(names)):
         for j in range(i + 1, len(names)):
-            if unit[i] is None or unit[i] != unit[j]:
+            if unit[i] is None or unit[i] != unit[j] or "sub" not in ops:
                 continue
             d_expr = sym[i] - sym[j]
             d = X[:, i] - X[:, j]
             terms.append(Term(d_expr, d))
-            terms.append(Term(d_expr * sympy.sqrt(sympy.Abs(d_expr)), d * np.sqrt(np.abs(d))))
-            terms.append(Term(d_expr * sympy.Abs(d_expr), d * np.abs(d)))
+            if "sqrt" in ops and "mul" in ops:
+                terms.append(Term(d_expr * sympy.sqrt(sympy.Abs(d_expr)), d * np.sqrt(np.abs(d))))
+            if "abs" in ops and "mul" in ops:
+                terms.append(Term(d_expr * sympy.Abs(d_expr), d * np.abs(d)))
             if unit[i] == radiation_unit:
                 terms.append(Term(sym[i] ** 4 - sym[j] ** 4, X[:, i] ** 4 - X[:, j] ** 4))
-            if products:
+            if "sign" in ops:
+                terms.append(Term(sympy.sign(d_expr), np.sign(d)))
+            if "max" in ops:
+                terms.append(Term(sympy.Max(d_expr, 0), np.maximum(d, 0.0)))
+            if "min" in ops:
+                terms.append(Term(sympy.Min(d_expr, 0), np.minimum(d, 0.0)))
+            if products and "mul" in ops:
                 for m in range(len(names)):
                     if unit[m] is not None and unit[m] != unit[i]:
                         terms.append(Term(d_expr * sym[m], d * X[:, m]))
     return terms
+
+
+def with_operators(settings: dict[str, Any], ops: dict[str, int], given: set[str]) -> dict[str, Any]:
+    """The library's term families from the shared operators (:func:`library`)."""
+    return {**settings, "operators": sorted(ops)}
 
 
 def _text(pairs: list[tuple[Term, float]]) -> str:
@@ -120,7 +156,8 @@ def search(
     """Threshold sweep of STLSQ on ``X (n, k)``, ``y (n,)``; returns ``(expr, n_terms, terms, text)`` per model and the library."""
     from pysindy.optimizers import STLSQ
 
-    terms = library(X, names, units, radiation_unit=options["radiation_unit"], products=options["products"])
+    terms = library(X, names, units, radiation_unit=options["radiation_unit"], products=options["products"],
+                    operators=options.get("operators"))
     norms = np.array([np.linalg.norm(t.values) for t in terms])
     keep = [i for i, t in enumerate(terms) if np.isfinite(t.values).all() and norms[i] > 0]
     terms = [terms[i] for i in keep]

@@ -33,9 +33,11 @@ def nearly_constant(t: np.ndarray) -> bool:
 
 
 def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict[str, np.ndarray],
-                         y: np.ndarray) -> list[Any]:
+                         y: np.ndarray, *, operators: dict[str, int] | None = None) -> list[Any]:
     """The catalogue's forms over ``inputs`` (unit rules obeyed), each ``c`` fitted to ``y (N,)``,
-    alone and plus a steady offset (``c·form + c0``: an offset the rest of the model leaves)."""
+    alone and plus a steady offset (``c·form + c0``: an offset the rest of the model leaves);
+    complexity priced by ``operators`` (:func:`physmend.symbolic.operators.priced_size`; None: nodes)."""
+    from physmend.symbolic.operators import priced_size
     import itertools
 
     from physmend.explain.mechanisms import load_catalogue
@@ -63,7 +65,7 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
                     continue
                 seen.add(key)
                 expr = sp.Float(c) * shape + (sp.Float(c0) if c0 != 0.0 else 0)
-                out.append(Candidate(expr=expr, complexity=tree_size(expr), mse=mse, r2=r2,
+                out.append(Candidate(expr=expr, complexity=tree_size(expr) if operators is None else priced_size(expr, operators), mse=mse, r2=r2,
                                      text=f"{display(expr)}   [catalogue: {m.name}{' + offset' if c0 else ''}]"))
     return out
 

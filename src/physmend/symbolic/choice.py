@@ -92,6 +92,12 @@ def choose_by_recordings(rates: Any, state: str, front: Any) -> tuple[int, str, 
     return pick, why, [(a, r2) for a, _, r2 in scores]
 
 
+#: the simulated choice screens a long front: every candidate re-fitted with SCREEN_STEPS
+#: Levenberg–Marquardt steps first, the SCREEN_KEEP best by that BIC then re-fitted in full
+SCREEN_STEPS = 3
+SCREEN_KEEP = 8
+
+
 def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build: Any,
                          refit_steps: int = 0) -> tuple[int, str]:
     """The formula for ``state`` whose corrected *model* best reproduces the training records.
@@ -123,27 +129,42 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     # the model as written, simulated once: the segments' plan, initial guesses and scales (a
     # candidate's own parameters — its constants — come with its own batch)
     base = reference(checkpoint_problem(problem), work)
-    losses = []
-    for i, c in enumerate(front.candidates):
+
+    def loss_of(i: int, steps: int) -> float:
         corrections = build(i)
         corrected = checkpoint_problem(corrected_problem(work, corrections))
         ref = dataclasses.replace(base, batch=make_batch(corrected.experiments, corrected.compiled, corrected.dtype))
         try:
-            _, result = refit(work, corrected, ref, corrections, refit_steps)
+            _, result = refit(work, corrected, ref, corrections, steps, uncertainty=False)
             loss = float(result.loss_after)
         except Exception:  # noqa: BLE001 - a candidate whose segments cannot be solved is out
             loss = float("inf")
-        losses.append(loss if np.isfinite(loss) else float("inf"))
-    bic = [n * np.log(max(v, 1e-300)) + n_constants(c.expr) * np.log(n) if np.isfinite(v) else np.inf
-           for v, c in zip(losses, front.candidates)]
+        return loss if np.isfinite(loss) else float("inf")
+
+    def bic_of(i: int, loss: float) -> float:
+        return n * np.log(max(loss, 1e-300)) + n_constants(front.candidates[i].expr) * np.log(n) if np.isfinite(loss) else np.inf
+
+    count = len(front.candidates)
+    if count > SCREEN_KEEP and refit_steps > SCREEN_STEPS:
+        # screening: every candidate with a few steps, the best SCREEN_KEEP by that BIC re-fitted in full
+        first = [loss_of(i, SCREEN_STEPS) for i in range(count)]
+        finalists = sorted(range(count), key=lambda i: bic_of(i, first[i]))[:SCREEN_KEEP]
+        losses = [float("inf")] * count
+        for i in finalists:
+            losses[i] = loss_of(i, refit_steps)
+    else:
+        losses = [loss_of(i, refit_steps) for i in range(count)]
+    bic = [bic_of(i, v) for i, v in enumerate(losses)]
     if not np.isfinite(bic).any():
         return 0, (f"Rule 'simulated': no formula for {state} gave a corrected model whose segments could be "
                    "solved; index 0 (the simplest) is kept for the fallback along the front")
     pick = int(np.argmin(bic))
     c = front.candidates[pick]
+    screened = (f"; screened first with {SCREEN_STEPS} steps each, the best {SCREEN_KEEP} re-fitted in full"
+                if count > SCREEN_KEEP and refit_steps > SCREEN_STEPS else "")
     why = (f"Rule 'simulated' ({state} is not measured, so no recorded mismatch exists for it): each formula put "
            f"into the model, its constants re-fitted through the simulator (multiple shooting over the training "
-           f"records, at most {refit_steps} steps); the lowest BIC = n·ln(L) + k·ln(n) of that loss ({n:.0f} "
+           f"records, at most {refit_steps} steps{screened}); the lowest BIC = n·ln(L) + k·ln(n) of that loss ({n:.0f} "
            f"independent windows of {window:.4g}); chose index {pick} ({n_constants(c.expr)} constant(s), "
            f"loss {losses[pick]:.4g}): {c.text}")
     return pick, why

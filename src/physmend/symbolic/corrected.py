@@ -91,7 +91,8 @@ def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True
         return {}
 
 
-def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int) -> tuple[list, Any]:
+def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int, *,
+          uncertainty: bool = True) -> tuple[list, Any]:
     """Re-fit the constants of ``corrections`` through the simulator (multiple shooting, at most
     ``iterations`` Levenberg–Marquardt steps; :mod:`physmend.symbolic.refit`); the model's other
     parameters stay as written. Returns the re-fitted corrections and the fit's outcome."""
@@ -101,7 +102,8 @@ def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iteration
 
     names = {(c.state, k): constant_parameter_name(problem.model.owner.get(c.state, ""), c.state, k)
              for c in corrections for k in c.constants}
-    result = refit_constants(problem, problem_cfg, ref, list(names.values()), max_iterations=iterations)
+    result = refit_constants(problem, problem_cfg, ref, list(names.values()), max_iterations=iterations,
+                             uncertainty=uncertainty)
     fitted = [Correction(state=c.state, term=c.term, unit=c.unit, mechanism=c.mechanism,
                          constants={k: result.constants.get(names[(c.state, k)], v) for k, v in c.constants.items()})
               for c in corrections]

@@ -243,7 +243,7 @@ class _Shooting:
 
 
 def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, max_iterations: int = 50,
-                    rtol: float = 1e-6) -> RefitResult:
+                    rtol: float = 1e-6, uncertainty: bool = True) -> RefitResult:
     """Re-fit the model parameters ``names`` (a formula's constants) by multiple shooting.
 
     Args:
@@ -255,6 +255,8 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
         names: parameter names of the constants; each stays on its sign, within a factor 20.
         max_iterations: at most this many accepted Levenberg–Marquardt steps.
         rtol: stop when a step lowers the loss by less than this fraction.
+        uncertainty: compute the constants' standard errors (one more Jacobian) — not needed
+            where only the loss is compared.
 
     Returns:
         The constants and the loss before and after; where the loss cannot be evaluated (the
@@ -298,7 +300,7 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
         if gain < rtol:
             converged = True
             break
-    stderr = _standard_errors(shoot, theta, v, solved, loss)
+    stderr = _standard_errors(shoot, theta, v, solved, loss) if uncertainty else {}
     return RefitResult(dict(zip(shoot.names, theta.tolist())), before, loss, it, converged, stderr)
 
 

@@ -169,6 +169,7 @@ class HybridModel(nn.Module):
         self.register_buffer("est_lo", torch.tensor(lo, dtype=dtype))
         self.register_buffer("est_hi", torch.tensor(hi, dtype=dtype))
         start = torch.tensor([params[n].value for n in spec.estimated], dtype=dtype)
+        self.register_buffer("est_nominal", start.clone(), persistent=False)
         frac = ((start - self.est_lo) / (self.est_hi - self.est_lo)).clamp(1e-4, 1 - 1e-4) if spec.estimated else start
         self.est_raw = nn.Parameter(torch.logit(frac) if spec.estimated else torch.zeros(0, dtype=dtype))
 
@@ -205,7 +206,18 @@ class HybridModel(nn.Module):
         """Network corrections ``(..., B, n_corrected)`` in state units per second."""
         z = (self.features(u, x, p) - self.mean) / self.std
         out = self.net(z) * (self.out_scale * self.out_mask)
-        return out if self.coefficients is None else out / self.coefficients(p)
+        return out if self.coefficients is None else out / self.equation_coefficients(p)
+
+    def equation_coefficients(self, p: torch.Tensor) -> torch.Tensor:
+        """``a_i(p)`` of the corrected equations ``(..., k)`` for ``p (..., n_params)``, with every
+        jointly estimated parameter at its declared value: the network's term is converted to a rate
+        by the capacity as written, so an estimate and the network cannot trade one scale for the
+        other (a heat capacity doubled with the correction doubled)."""
+        assert self.coefficients is not None
+        if self.est_idx:
+            p = p.clone()
+            p[..., self.est_idx] = self.est_nominal.to(p.dtype)
+        return self.coefficients(p)
 
     def corrections_of_z(self, z: torch.Tensor) -> torch.Tensor:
         """Corrections from normalised features ``z (..., n_features)`` (for sensitivities), in the

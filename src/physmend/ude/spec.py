@@ -97,7 +97,7 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     rate_rms = rms
     if units == "equation" and corrected:
         # the same size in the equation's own units: a_i·du_i/dt (W for a heat balance, N for a force)
-        coef = der_coefficients(problem, corrected)(ref.batch.params)  # (B, k)
+        coef = der_coefficients(problem, corrected)(ref.batch.params)  # (B, k), the parameters as given
         rms = _rms((ref.derivs[..., idx] * coef[None])[mask])
     return HybridSpec(
         corrected=corrected,

@@ -160,7 +160,7 @@ class _Stack:
         z = (self.template.features(u, x, p) - self.mean) / self.std
         *lead, rows, n_feat = z.shape
         r = rows // m
-        coef = self.template.coefficients
+        coef = None if self.template.coefficients is None else self.template.equation_coefficients
         if not lead:
             out = net(z.reshape(m, r, n_feat)).reshape(rows, -1)
             return out if coef is None else out / coef(p)

@@ -131,7 +131,7 @@ def compose(
     except SettingError as exc:
         raise ConfigError(str(exc)) from None
     if "operators" in cfg:
-        from physmend.symbolic.operators import OperatorError, check_operators
+        from physmend.config_check import OperatorError, check_operators
 
         where = _option_file("operators", choices.get("operators", "default"), [*search, config_dir()])
         try:

@@ -198,7 +198,7 @@ def test_sweep_resume_structure_selection_and_reload(user_project: Path, monkeyp
         assert kid.data.params == {k: str(v) for k, v in trial.params.items()}
         assert kid.data.metrics["val.rmse"] == pytest.approx(trial.value, rel=1e-12)
         history = store.client.get_metric_history(kid.info.run_id, "val.rmse")
-        assert [m.step for m in history] == [0, 2, 4, 5]  # warm start, per epoch, then the final (best) value
+        assert [m.step for m in history] == [0, 2, 4, 6, 7]  # warm start, per epoch, the polish (train.polish), then the final (best) value
         files = {f.path for f in store.client.list_artifacts(kid.info.run_id)}
         assert {"config.yaml", "model", "plots", "history.json"} <= files
         assert {f.path for f in store.client.list_artifacts(kid.info.run_id, "model")} == {"model/hybrid.json", "model/weights.pt"}
@@ -525,8 +525,8 @@ def test_grouped_trials_train_as_one_stack_and_each_keeps_its_own_run(user_proje
             continue
         assert kid.data.metrics["val.rmse"] == pytest.approx(trial.value, rel=1e-12)
         steps = [m.step for m in store.client.get_metric_history(kid.info.run_id, "val.rmse")]
-        assert steps == [0, 2, 4, 5]
-        assert trial.intermediate_values and set(trial.intermediate_values) == {0, 2, 4}
+        assert steps == [0, 2, 4, 6, 7]  # warm start, epochs 2 and 4, the L-BFGS polish, the final value
+        assert trial.intermediate_values and set(trial.intermediate_values) == {0, 2, 4, 6}  # 6: the L-BFGS polish
         # the final metrics come from one batched solve of the stack's models: a reloaded model
         # evaluated on its own agrees to the solver tolerance
         loaded = load_trial(store, kid.info.run_id)

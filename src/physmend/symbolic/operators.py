@@ -22,22 +22,8 @@ from typing import Any
 
 import sympy as sp
 
-#: operator name -> (arity, what it is); the names every back end maps from
-KNOWN: dict[str, tuple[int, str]] = {
-    "add": (2, "a + b"),
-    "sub": (2, "a - b"),
-    "mul": (2, "a·b (products of states, inputs and parameters)"),
-    "div": (2, "a / b (quotients)"),
-    "square": (1, "a²"),
-    "abs": (1, "|a|"),
-    "sqrt": (1, "sqrt(|a|) (with mul: the signed power a·|a|^½)"),
-    "sign": (1, "sign(a) (Coulomb friction, switching loads)"),
-    "min": (2, "min(a, b) (saturation, clipping, thresholds)"),
-    "max": (2, "max(a, b) (overflow, one-way flow)"),
-    "exp": (1, "exp(a)"),
-    "log": (1, "log(|a|)"),
-    "tanh": (1, "tanh(a) (smooth saturation)"),
-}
+# the operator names and their check live with the other configuration checks (the config layer)
+from physmend.config_check import KNOWN, OperatorError, check_operators  # noqa: F401
 
 #: the price of a function a formula may hold that is not among the operators (a catalogue form's)
 UNLISTED_PRICE = 3
@@ -47,31 +33,6 @@ _OPERON = {"add": "add", "sub": "sub", "mul": "mul", "div": "div", "square": "sq
 _PYSR_BINARY = {"add": "+", "sub": "-", "mul": "*", "div": "/", "min": "min", "max": "max"}
 _PYSR_UNARY = {"square": "square", "abs": "abs", "sqrt": "sqrt", "sign": "sign", "exp": "exp", "log": "log",
                "tanh": "tanh"}
-
-
-class OperatorError(ValueError):
-    """An operators file or setting is wrong; the message names the file and the entry."""
-
-
-def check_operators(ops: Any, where: str) -> dict[str, int]:
-    """``ops`` (a mapping name -> price) checked; ``where`` names the file or key for the message."""
-    if ops is None:
-        raise OperatorError(f"{where}: no operators given; list at least one, e.g. 'add: 1'")
-    if not isinstance(ops, Mapping):
-        raise OperatorError(f"{where} must map operator names to prices (e.g. 'mul: 1'), but got {type(ops).__name__}")
-    out: dict[str, int] = {}
-    for name, price in ops.items():
-        name = str(name)
-        if name not in KNOWN:
-            raise OperatorError(f"{where}: unknown operator {name!r} (known: {', '.join(KNOWN)})")
-        if price is None:
-            continue  # listed and switched off ('sign: null')
-        if isinstance(price, bool) or not isinstance(price, int) or price < 1:
-            raise OperatorError(f"{where}: the price of {name!r} must be a whole number ≥ 1, but got {price!r}")
-        out[name] = int(price)
-    if not out:
-        raise OperatorError(f"{where}: every operator is switched off; keep at least one (e.g. 'add: 1')")
-    return out
 
 
 def operon_symbols(ops: Mapping[str, int]) -> str:

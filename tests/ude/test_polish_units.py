@@ -97,3 +97,27 @@ def test_a_stack_polishes_each_model_within_its_own_shape(short_project: Path) -
         assert min(r["loss"] for r in polished) < result.history[1]["loss"]
         # the solo evaluation of the written-back best model equals its stacked checkpoint
         assert result.val_rmse == pytest.approx(min(r["val.rmse"] for r in result.history), rel=1e-3)
+
+
+def test_an_estimated_capacity_does_not_rescale_the_network(short_project: Path) -> None:
+    """With the mass estimated, the force the network adds is converted to a rate by the mass as
+    written: moving the estimate changes the physics, never the network's term (the two cannot
+    trade one scale for the other)."""
+    source = short_project / "oscillator.py"
+    text = source.read_text()
+    assert 'm.parameter("cart.mass", 2.0, unit="kg")' in text
+    source.write_text(text.replace('m.parameter("cart.mass", 2.0, unit="kg")',
+                                   'm.parameter("cart.mass", 2.0, unit="kg", uncertain=True, bounds=(1.0, 4.0))'))
+    hybrid, problem = _hybrid(short_project, "ude.inputs.parameters=[]")
+    assert "cart.mass" in hybrid.spec.estimated and hybrid.coefficients is not None
+    col = hybrid.spec.corrected.index("cart.v")
+    p = torch.tensor([list(problem.experiments[0].parameters)], dtype=problem.dtype)
+    u = torch.randn(4, 1, len(problem.model.state_names), dtype=problem.dtype)
+    x = torch.zeros(4, 1, len(problem.compiled.input_names), dtype=problem.dtype)
+    with torch.no_grad():
+        hybrid.net[-1].bias.fill_(1.0)
+        before = hybrid.corrections(u, x, hybrid.parameters_for(p))[..., col]
+        hybrid.est_raw.add_(2.0)  # the mass estimate moves well away from 2 kg
+        assert abs(hybrid.estimates()["cart.mass"] - 2.0) > 0.5
+        after = hybrid.corrections(u, x, hybrid.parameters_for(p))[..., col]
+    torch.testing.assert_close(after, before)

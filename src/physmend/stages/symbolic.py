@@ -345,7 +345,7 @@ def _uncertainty_note(result: Any) -> str:
     parts = []
     for name, value in result.constants.items():
         se = result.stderr.get(name, math.inf)
-        short = name.rsplit(".", 1)[-1]
+        short = name  # the model parameter holding it (owner.state_cK): unique, unlike the bare cK
         if not math.isfinite(se):
             parts.append(f"{short} = {value:.4g} (the data cannot pin it down)")
         else:

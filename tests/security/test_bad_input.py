@@ -56,6 +56,8 @@ CASES: list[tuple[str, str, Setup, list[str]]] = [
     ("negative lr", "sweep", _override("train.lr=-0.01"), ["train.lr", "-0.01", "> 0"]),
     ("schedule", "sweep", _override("train.schedule=linear"), ["train.schedule", "cosine", "'linear'"]),
     ("switch", "diagnose", _override("diagnose.plots=maybe"), ["diagnose.plots", "true or false"]),
+    ("unknown operator", "diagnose", _override("+operators.cosine=1"), ["operators", "default.yaml", "'cosine'"]),
+    ("negative price", "diagnose", _override("operators.mul=-2"), ["default.yaml", "'mul'", "-2"]),
     ("unknown scheme", "diagnose", _override("tracking.uri=foo://bar"), ["tracking.uri", "foo://bar"]),
     ("missing folder", "diagnose", _override("tracking.uri=sqlite:////no/such/folder/mlflow.db"),
      ["tracking.uri", "/no/such/folder"]),

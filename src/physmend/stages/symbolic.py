@@ -44,8 +44,12 @@ STAGE = "symbolic"
 
 
 
-def equation_unit(model: Any, state: str) -> str:
-    """The unit of the terms of ``state``'s equation (from a variable in its right-hand side)."""
+def equation_unit(model: Any, state: str, time_unit: str = "s") -> str:
+    """The unit of the terms of ``state``'s equation: for ``der(x) = …`` (coefficient 1) the rate
+    ``unit(x)/time_unit``; otherwise the unit of a variable of its right-hand side (a heat flow in a
+    heat balance ``C·der(T) = Q_flow + …``)."""
+    if model.der_coefficient.get(state, 1) == 1 and model.units.get(state):
+        return f"{model.units[state]}/{time_unit}"
     eq = model.equations.get(state)
     if eq is None:
         return ""
@@ -165,7 +169,7 @@ def _correction(problem: Any, state: str, front: Any, idx: int, why: str, column
     """The correction for Pareto candidate ``idx`` (clean catalogue form when it fits); records ``chosen``."""
     from physmend.modeling import Correction
 
-    unit = equation_unit(problem.model, state)
+    unit = equation_unit(problem.model, state, getattr(problem, "time_unit", "s"))
     raw = front.candidates[idx].expr
     canonical = canonical_form(raw, columns, units, float(sc.canonical_r2))
     if canonical is not None:

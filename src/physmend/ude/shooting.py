@@ -15,7 +15,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch
-from physmend.ude.hybrid import HybridSpec, UDEConfigError
+from physmend.ude.hybrid import HybridSpec, UDEConfigError, der_coefficients
 from physmend.ude.reference import Reference
 
 
@@ -217,18 +217,10 @@ def _output_spread(obs: torch.Tensor) -> torch.Tensor:
 def _equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
     """``a_i`` per segment ``(S, k)`` of the corrected equations ``a_i·der(x_i) = …`` and one
     reference size ``()``: the mean RMS of ``a_i·du_i/dt`` along the model-as-written simulation."""
-    from physmend.modeling.compile import lambdify_torch
-
     model = problem.model
     if not spec.corrected:
         return torch.ones(params_seg.shape[0], 0, dtype=params_seg.dtype), torch.ones((), dtype=params_seg.dtype)
-    psyms = [v.symbol for v in model.parameters]
-    fn = lambdify_torch(psyms, [model.der_coefficient[n] for n in spec.corrected], "der coefficients")
-
-    def coefs(p: torch.Tensor) -> torch.Tensor:
-        vals = fn(*p.unbind(-1))
-        return torch.stack([torch.as_tensor(v, dtype=p.dtype).expand(p.shape[:-1]) for v in vals], -1)
-
+    coefs = der_coefficients(model, spec.corrected)
     idx = [model.state_names.index(n) for n in spec.corrected]
     power = ref.derivs[..., idx] * coefs(ref.batch.params)[None]
     ref_size = power.pow(2).mean(dim=(0, 1)).sqrt().mean().clamp_min(1e-30)

@@ -15,6 +15,7 @@ STAGES = {
     "propose": ("physmend.stages.propose:run", "the corrected model, validated on held-out experiments, with a report"),
     "accept": ("physmend.stages.decide:accept", "accept a proposal: write its corrections file"),
     "reject": ("physmend.stages.decide:reject", "reject a proposal (decide.reason='...')"),
+    "export": ("physmend.stages.export:run", "write a proposal's corrected model as LaTeX, sympy and a Python module"),
     "discover": ("physmend.stages.discover:run", "all of the above with default choices, end to end"),
 }
 # what each stage's optional run ID means
@@ -26,6 +27,7 @@ SOURCE_HELP = {
     "propose": "symbolic run ID (default: the latest symbolic run)",
     "accept": "the proposal's run ID",
     "reject": "the proposal's run ID",
+    "export": "the proposal's run ID",
 }
 
 EPILOG = """\

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 
 #: groups physmend ships and owns the keys of (the user's ``model`` and ``data`` are checked on load)
 CHECKED_GROUPS = ("simulate", "tracking", "diagnose", "ude", "train", "mask", "sensitivity", "symbolic",
-                  "propose", "decide", "discover", "sweep")
+                  "propose", "decide", "export", "discover", "sweep")
 
 #: word settings with a closed set of values (others, like ``simulate.method``, are checked by their user)
 CHOICES: dict[str, tuple[str, ...]] = {
@@ -29,6 +29,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "train.warm_start": ("auto", "none"),
     "train.segment_starts": ("chained", "forced"),
     "ude.units": ("equation", "state"),
+    "export.format": ("all", "latex", "sympy", "python"),
     "simulate.dtype": ("float64", "float32"),
 }
 

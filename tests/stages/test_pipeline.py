@@ -88,6 +88,64 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     metrics = client.get_run(diag_id).data.metrics
     for exp, rmse in after.items():
         assert metrics[f"rmse.{exp}.cart.x"] == pytest.approx(rmse, rel=1e-6)
+    _exports_round_trip(user_project, capsys, prop2, after)
+
+
+def _exports_round_trip(project: Path, capsys, prop_id: str, after: dict[str, float]) -> None:  # noqa: ANN001
+    """``physmend export``: the Python module, simulated with scipy on the recorded inputs, and the
+    sympy expressions, lambdified, reproduce the proposal's held-out fit; LaTeX shows the term;
+    nothing is overwritten."""
+    import importlib.util
+
+    import numpy as np
+    import pandas as pd
+    import scipy.integrate
+    import sympy as sp
+
+    rc, out, err = _run(project, capsys, "export", prop_id, "export.output_dir=exported")
+    assert rc == 0, err
+    files = {p.suffixes[-1] if p.suffix != ".json" else ".sympy.json": p for p in (project / "exported").iterdir()}
+    assert set(files) == {".tex", ".py", ".sympy.json"}, files
+    spec = importlib.util.spec_from_file_location("exported_model", files[".py"])
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.STATES == ["cart.x", "cart.v"] and mod.INPUTS == ["motor.F"] and mod.OUTPUTS == ["cart.x"]
+    assert any(k.startswith("cart.v_") for k in mod.PARAMETERS)  # the correction's re-fitted constant
+    data = pd.read_csv(project / "recordings" / "run3.csv")
+    t, force, x_meas = data["t_s"].to_numpy() - 1000.0, data["motor.F"].to_numpy(), data["position"].to_numpy()
+    p = {**mod.PARAMETERS, **mod.EXPERIMENTS["run3"]["parameters"]}
+    x0 = [mod.EXPERIMENTS["run3"]["initial"][s] for s in mod.STATES]
+    assert x0 == pytest.approx(mod.initial_state(p))  # the start expression cart.x = cart.x0
+
+    def simulate(rhs):  # noqa: ANN001, ANN202
+        sol = scipy.integrate.solve_ivp(lambda tt, x: rhs(tt, x, [float(np.interp(tt, t, force))], p), (t[0], t[-1]),
+                                        x0, t_eval=t, rtol=1e-9, atol=1e-10, max_step=0.05)
+        assert sol.success
+        return sol.y[0]
+
+    ok = np.isfinite(x_meas)
+    rmse = float(np.sqrt(np.mean((simulate(mod.rhs)[ok] - x_meas[ok]) ** 2)))
+    assert rmse == pytest.approx(after["run3"], rel=0.02)  # the held-out fit the proposal reports
+    doc = json.loads(files[".sympy.json"].read_text())
+    symbols = {s.name: s for s in sp.sympify(doc["rhs"]["cart.v"]).free_symbols | sp.sympify(doc["rhs"]["cart.x"]).free_symbols}
+    order = [symbols[n] for n in ("cart.x", "cart.v", "motor.F") if n in symbols]
+    rest = sorted(set(symbols.values()) - set(order), key=str)
+    f = sp.lambdify(order + rest, [sp.sympify(doc["rhs"][n]) for n in ("cart.x", "cart.v")])
+
+    def rhs_sympy(tt, x, u, pp):  # noqa: ANN001, ANN202
+        env = {"cart.x": x[0], "cart.v": x[1], "motor.F": u[0], **pp}
+        return f(*[env[s.name] for s in order + rest])
+
+    rmse_sympy = float(np.sqrt(np.mean((simulate(rhs_sympy)[ok] - x_meas[ok]) ** 2)))
+    assert rmse_sympy == pytest.approx(rmse, rel=1e-6)
+    tex = files[".tex"].read_text()
+    assert r"\begin{align*}" in tex and r"\frac{d\,\mathrm{cart.v}}{dt}" in tex and "cart.v\\_" in tex
+    # a second export of the same proposal overwrites nothing: one clear line, the files unchanged
+    before = {p: p.read_bytes() for p in files.values()}
+    rc, _, err = _run(project, capsys, "export", prop_id, "export.output_dir=exported")
+    assert rc == 2 and "never overwrites" in err and {p: p.read_bytes() for p in files.values()} == before
+    rc, _, err = _run(project, capsys, "export", prop_id, "export.format=pdf")
+    assert rc == 2 and "export.format must be one of ['all', 'latex', 'sympy', 'python'], but got 'pdf'" in err
 
 
 def test_bad_run_ids_are_clear_errors(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001

@@ -121,3 +121,42 @@ def test_an_estimated_capacity_does_not_rescale_the_network(short_project: Path)
         assert abs(hybrid.estimates()["cart.mass"] - 2.0) > 0.5
         after = hybrid.corrections(u, x, hybrid.parameters_for(p))[..., col]
     torch.testing.assert_close(after, before)
+
+
+def test_the_noise_fit_is_the_fit_term_of_white_sensor_noise() -> None:
+    """``noise_fit``: mean over training samples of (σ/spread)², σ from each record's second differences."""
+    from types import SimpleNamespace
+
+    from physmend.ude.shooting import noise_fit
+
+    gen = torch.Generator().manual_seed(0)
+    t = torch.linspace(0.0, 100.0, 2001, dtype=torch.float64)
+    smooth = torch.stack([torch.sin(t / 7.0), 3.0 * torch.cos(t / 11.0)], -1)  # (T, k)
+    sigma = torch.tensor([0.01, 0.2], dtype=torch.float64)
+    obs = (smooth + sigma * torch.randn(t.shape[0], 2, generator=gen, dtype=torch.float64))[:, None, :]  # (T, 1, k)
+    spread = torch.tensor([0.5, 2.0], dtype=torch.float64)
+    mask = torch.ones(t.shape[0], 1, dtype=torch.bool)
+    expected = float(((sigma / spread) ** 2).mean())
+    assert noise_fit(SimpleNamespace(t=t, obs=obs), mask, spread) == pytest.approx(expected, rel=0.1)
+    # only the masked (training) samples count; too few samples: no estimate
+    none = torch.zeros_like(mask)
+    assert torch.isnan(torch.tensor(noise_fit(SimpleNamespace(t=t, obs=obs), none, spread)))
+
+
+def test_a_fit_at_the_noise_is_not_polished(short_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """L-BFGS runs only while the training fit is above ``AT_NOISE`` × the noise's: with the bar raised
+    above any fit, ``train`` and a stack stop after Adam (no checkpoint past its last epoch)."""
+    from physmend.ude import polish
+
+    assert polish.worth_polishing(3.0, 1.0) and not polish.worth_polishing(1.5, 1.0)
+    assert polish.worth_polishing(float("nan"), 1.0) and polish.worth_polishing(1.0, float("nan"))
+    assert polish.fit_at([{"val.rmse": 2.0, "fit_loss": 0.3}, {"val.rmse": 1.0, "fit_loss": 0.1}], 1.0) == 0.1
+    cfg = compose([*BASE, "ude.width=8", "train.polish=2"], user_config_dir=short_project / "my_conf")
+    problem = load_problem(cfg)
+    monkeypatch.setattr(polish, "AT_NOISE", 1e12)
+    result = train(cfg, problem)
+    assert [r["epoch"] for r in result.history] == [2.0, 4.0]
+    results = train_stack([cfg, compose([*BASE, "ude.width=12", "train.polish=2", "seed=3"],
+                                        user_config_dir=short_project / "my_conf")], problem, figures=False)
+    for r in results:
+        assert isinstance(r, TrainResult) and [h["epoch"] for h in r.history] == [2.0, 4.0], r

@@ -119,6 +119,7 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
 
     from physmend.modeling.evaluate import n_constants
     from physmend.simulate import make_batch
+    from physmend.symbolic.refit import segment_guesses
     from physmend.ude.metrics import checkpoint_problem
     from physmend.ude.reference import reference
 
@@ -129,13 +130,17 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     # the model as written, simulated once: the segments' plan, initial guesses and scales (a
     # candidate's own parameters — its constants — come with its own batch)
     base = reference(checkpoint_problem(problem), work)
+    shared: list[Any] = []  # the screening's segment-start guesses: the model as written's, made once
 
-    def loss_of(i: int, steps: int) -> float:
+    def loss_of(i: int, steps: int, screening: bool = False) -> float:
         corrections = build(i)
         corrected = checkpoint_problem(corrected_problem(work, corrections))
         ref = dataclasses.replace(base, batch=make_batch(corrected.experiments, corrected.compiled, corrected.dtype))
         try:
-            _, result = refit(work, corrected, ref, corrections, steps, uncertainty=False)
+            if screening and not shared:
+                shared.append(segment_guesses(checkpoint_problem(problem), work, base))
+            _, result = refit(work, corrected, ref, corrections, steps, uncertainty=False,
+                              starts=shared[0] if screening else None)
             loss = float(result.loss_after)
         except Exception:  # noqa: BLE001 - a candidate whose segments cannot be solved is out
             loss = float("inf")
@@ -147,7 +152,9 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     count = len(front.candidates)
     if count > SCREEN_KEEP and refit_steps > SCREEN_STEPS:
         # screening: every candidate with a few steps, the best SCREEN_KEEP by that BIC re-fitted in full
-        first = [loss_of(i, SCREEN_STEPS) for i in range(count)]
+        # (from the segment starts of the model as written: a candidate's own start guesses cost a
+        # forced solve each, the finalists get theirs)
+        first = [loss_of(i, SCREEN_STEPS, screening=True) for i in range(count)]
         finalists = sorted(range(count), key=lambda i: bic_of(i, first[i]))[:SCREEN_KEEP]
         losses = [float("inf")] * count
         for i in finalists:

@@ -92,10 +92,11 @@ def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True
 
 
 def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int, *,
-          uncertainty: bool = True) -> tuple[list, Any]:
+          uncertainty: bool = True, starts: Any = None) -> tuple[list, Any]:
     """Re-fit the constants of ``corrections`` through the simulator (multiple shooting, at most
     ``iterations`` Levenberg–Marquardt steps; :mod:`physmend.symbolic.refit`); the model's other
-    parameters stay as written. Returns the re-fitted corrections and the fit's outcome."""
+    parameters stay as written (``starts``: shared segment-start guesses, see ``refit_constants``).
+    Returns the re-fitted corrections and the fit's outcome."""
     from physmend.modeling import Correction
     from physmend.modeling.corrections import constant_parameter_name
     from physmend.symbolic.refit import refit_constants
@@ -103,7 +104,7 @@ def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iteration
     names = {(c.state, k): constant_parameter_name(problem.model.owner.get(c.state, ""), c.state, k)
              for c in corrections for k in c.constants}
     result = refit_constants(problem, problem_cfg, ref, list(names.values()), max_iterations=iterations,
-                             uncertainty=uncertainty)
+                             uncertainty=uncertainty, starts=starts)
     fitted = [Correction(state=c.state, term=c.term, unit=c.unit, mechanism=c.mechanism,
                          constants={k: result.constants.get(names[(c.state, k)], v) for k, v in c.constants.items()})
               for c in corrections]

@@ -85,7 +85,7 @@ class _Shooting:
     starts as offsets from their initial guesses, in units of each state's spread.
     """
 
-    def __init__(self, problem: Any, cfg: Any, ref: Any, names: Sequence[str]) -> None:
+    def __init__(self, problem: Any, cfg: Any, ref: Any, names: Sequence[str], starts: torch.Tensor | None = None) -> None:
         from physmend.ude.hybrid import HybridModel, HybridSpec
         from physmend.ude.reference import _train_mask
         from physmend.ude.shooting import _initial_segments, _output_spread, pinned_starts, plan_shooting
@@ -99,8 +99,8 @@ class _Shooting:
         self.names = list(names)
         self.idx = [compiled.parameter_names.index(n) for n in names]
         self.plan = plan = plan_shooting(problem, ref.batch, cfg)
-        seg0 = _initial_segments(problem, ref, plan)
-        if str(cfg.train.get("warm_start", "auto")) != "none":  # as training does: starts from the forced records
+        seg0 = _initial_segments(problem, ref, plan) if starts is None else starts.clone()
+        if starts is None and str(cfg.train.get("warm_start", "auto")) != "none":  # as training: from the forced records
             spec = HybridSpec(corrected=[], in_states=compiled.state_names[:1], in_observed=[], in_inputs=[],
                               in_parameters=[], widths=[], activation="tanh", mean=[0.0], std=[1.0], out_scale=[])
             forced = forced_trajectories(problem, ref.batch, HybridModel(compiled, spec, problem.dtype), plan.dt)
@@ -242,8 +242,15 @@ class _Shooting:
                               shape=(r0.numel(), self.n_unknowns))
 
 
+def segment_guesses(problem: Any, cfg: Any, ref: Any) -> torch.Tensor:
+    """The initial guesses of the segment starts ``(S, n)`` that :func:`refit_constants` makes for
+    ``problem`` — to be shared, through ``starts``, by re-fits of models that differ only in a
+    correction (the same records, so the same segments)."""
+    return _Shooting(problem, cfg, ref, []).seg0
+
+
 def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, max_iterations: int = 50,
-                    rtol: float = 1e-6, uncertainty: bool = True) -> RefitResult:
+                    rtol: float = 1e-6, uncertainty: bool = True, starts: torch.Tensor | None = None) -> RefitResult:
     """Re-fit the model parameters ``names`` (a formula's constants) by multiple shooting.
 
     Args:
@@ -257,12 +264,14 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
         rtol: stop when a step lowers the loss by less than this fraction.
         uncertainty: compute the constants' standard errors (one more Jacobian) — not needed
             where only the loss is compared.
+        starts: initial guesses of the segment starts ``(S, n)`` (:func:`segment_guesses`); default:
+            this model's own (its forced records where a warm start applies: one fixed-step solve).
 
     Returns:
         The constants and the loss before and after; where the loss cannot be evaluated (the
         fixed-step solve leaves the finite range) the constants are returned unchanged.
     """
-    shoot = _Shooting(problem, cfg, ref, names)
+    shoot = _Shooting(problem, cfg, ref, names, starts)
     theta = shoot.params[0, shoot.idx].clone()
     start = dict(zip(shoot.names, theta.tolist()))
     v = torch.zeros_like(shoot.seg0)

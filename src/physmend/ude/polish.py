@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from typing import Any
+import math
 
 import torch
 
@@ -20,6 +21,10 @@ from physmend.ude.hybrid import UDEConfigError
 
 #: remembered curvature pairs of L-BFGS
 HISTORY = 20
+
+#: the training fit, in multiples of the fit that sensor noise alone leaves (``shooting.noise_fit``),
+#: at or below which L-BFGS is not run: the loss it would minimise has nothing left but noise
+AT_NOISE = 2.0
 
 #: ``objective() -> (loss, fit)``: the loss L-BFGS minimises (its sum, for several models at once)
 #: and the fit part, each a tensor ``()`` or ``(M,)``
@@ -32,6 +37,20 @@ def polish_iterations(tc: Any) -> int:
     if not share >= 0.0:
         raise UDEConfigError(f"train.polish must be a share of train.epochs ≥ 0, but got {share!r}")
     return int(round(share * int(tc.epochs)))
+
+
+def worth_polishing(fit: float, noise: float) -> bool:
+    """Whether a network whose best checkpoint left the training fit term ``fit`` is worth polishing,
+    given ``noise``, the fit term of sensor noise alone (both in the loss's units: mean squared error
+    over each output's spread). L-BFGS minimises the training loss; at the noise there is nothing
+    left for it to take (the cargo-box network's fit sat at 0.76× the noise's: its polish cost 40%
+    more time and never improved validation). Unknown values (NaN) polish."""
+    return not (math.isfinite(fit) and math.isfinite(noise) and noise > 0 and fit <= AT_NOISE * noise)
+
+
+def fit_at(history: Sequence[dict[str, float]], val_rmse: float) -> float:
+    """The fit term logged at the checkpoint whose validation RMSE is ``val_rmse`` (NaN: none)."""
+    return next((float(r.get("fit_loss", math.nan)) for r in history if r.get("val.rmse") == val_rmse), math.nan)
 
 
 class Polisher:

@@ -214,6 +214,32 @@ def _output_spread(obs: torch.Tensor) -> torch.Tensor:
     return torch.stack(cols).clamp_min(1e-9)
 
 
+def noise_fit(batch: Batch, mask: torch.Tensor, out_std: torch.Tensor) -> float:
+    """The fit term of the multiple-shooting loss that a model exact but for sensor noise would
+    leave: the mean over training samples of ``(σ_bj / spread_j)²`` (``σ_bj``: noise of output j
+    in experiment b, from the record's second differences; ``spread_j``: ``out_std``). NaN where no
+    noise can be estimated.
+
+    ``batch.obs (T, B, k)``, ``mask (T, B)`` (the training samples), ``out_std (k,)``."""
+    from physmend.explain.residuals import noise_floor
+
+    total, count = 0.0, 0
+    t = batch.t.detach().cpu().numpy()
+    for b in range(batch.obs.shape[1]):
+        for j in range(batch.obs.shape[2]):
+            y = batch.obs[:, b, j].detach().cpu().numpy()
+            keep = mask[:, b].cpu().numpy() & np.isfinite(y)
+            n = int(keep.sum())
+            if n < 5:
+                continue
+            sigma = noise_floor(t[keep], y[keep])
+            if not math.isfinite(sigma):
+                continue
+            total += n * (sigma / float(out_std[j])) ** 2
+            count += n
+    return total / count if count else float("nan")
+
+
 def _equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
     """``a_i`` per segment ``(S, k)`` of the corrected equations ``a_i·der(x_i) = …`` and one
     reference size ``()``: the mean RMS of ``a_i·du_i/dt`` along the model-as-written simulation."""

@@ -60,10 +60,10 @@ from physmend.ude.stack_members import _check_same_shape, _prepare, _shared_warm
 from physmend.ude.stack_plan import _setup
 from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
-from physmend.ude.polish import Polisher, polish_iterations
-from physmend.ude.reference import Reference, _sim_opts
+from physmend.ude.polish import Polisher, fit_at, polish_iterations, worth_polishing
+from physmend.ude.reference import Reference, _sim_opts, _train_mask
 from physmend.ude.schedule import _lr_schedule, cycle_of, restarts, stops_at
-from physmend.ude.shooting import BOX_MARGIN, Shooting, pinned_starts, segments_finite
+from physmend.ude.shooting import BOX_MARGIN, Shooting, _output_spread, noise_fit, pinned_starts, segments_finite
 from physmend.ude.warmstart import Forced, recall_derived, remember_derived
 
 
@@ -322,6 +322,10 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
     last = max((int(r["epoch"]) for mem in members for r in mem.history), default=epoch)  # the last checkpoint
     polish = polish_iterations(tc)
     ready = [mem for mem in members if mem.outcome is None and mem.best is not None]
+    if polish > 0 and ready:  # a model whose training fit is at the sensor noise has nothing to polish
+        tm = _train_mask(problem, ref.batch)
+        noise = noise_fit(ref.batch, tm, _output_spread(ref.batch.obs[tm]))
+        ready = [mem for mem in ready if mem.best is not None and worth_polishing(fit_at(mem.history, mem.best[0]), noise)]
     if polish > 0 and ready:  # every model with a checkpoint, from its best one, as train() polishes
         for mem in ready:
             assert mem.best is not None

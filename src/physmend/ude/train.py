@@ -27,10 +27,10 @@ from physmend.ude.artifacts import artifacts_of, fit_figures
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import _evaluate, checkpoint_problem
 from physmend.ude.outcome import TrainResult, TrainingDiverged
-from physmend.ude.polish import polish_iterations, polish_lbfgs
+from physmend.ude.polish import fit_at, polish_iterations, polish_lbfgs, worth_polishing
 from physmend.ude.reference import _sim_opts, _train_mask, reference
 from physmend.ude.schedule import _chain, cycle_of, lr_factor, restarts, stops_at
-from physmend.ude.shooting import _equation_scale, _initial_segments, _output_spread, chained_starts, plan_shooting, rk4_segments
+from physmend.ude.shooting import _equation_scale, _initial_segments, _output_spread, chained_starts, noise_fit, plan_shooting, rk4_segments
 from physmend.ude.spec import build_spec
 from physmend.ude.warmstart import segment_starts, warm_start
 
@@ -176,7 +176,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         sched.step()
         if (epoch % eval_every == 0 or epoch % epochs == 0) and checkpoint(epoch, float(loss.detach()), float(fit.detach())):
             break
-    if best is not None and polish > 0:
+    if best is not None and polish > 0 and worth_polishing(fit_at(history, best[0]),
+                                                           noise_fit(ref.batch, _train_mask(problem, ref.batch), out_std)):
         hybrid.load_state_dict(best[1])
         since_best = 0
         polish_lbfgs(objective, [*hybrid.net.parameters(), free, *([hybrid.est_raw] if spec.estimated else [])],

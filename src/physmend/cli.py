@@ -126,13 +126,17 @@ def _ui(args: argparse.Namespace) -> int:
 
     cfg = _compose(args)
     uri = str(cfg.tracking.uri)
+    from physmend.redact import redact
+
+    if uri.lower().startswith(("http://", "https://")):  # a tracking server is its own UI
+        print(f"tracking.uri is an MLflow tracking server: open {redact(uri)} in a browser "
+              f"(experiment {cfg.tracking.experiment!r})")
+        return 0
     db = sqlite_path(uri)
     if db is not None:
         uri = f"sqlite:///{db}"
     cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", args.host,
            "--port", str(args.port), "--workers", "1"]
-    from physmend.redact import redact
-
     print("running:", redact(" ".join(cmd)))
     return subprocess.call(cmd)
 

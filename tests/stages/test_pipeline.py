@@ -64,6 +64,8 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     test_row = next(r for r in proposal["rows"] if r["role"] == "test")
     assert test_row["after"] < test_row["before"]
     assert {"report.md", "report.html", "corrections.yaml"} <= {a.path for a in client.list_artifacts(prop_id)}
+    _report_reads_well(Path(client.download_artifacts(prop_id, "report.html", str(user_project))).read_text(),
+                       [e for e in after])
 
     # reject changes nothing but tags
     before_files = sorted(p.name for p in user_project.iterdir())
@@ -89,6 +91,39 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     for exp, rmse in after.items():
         assert metrics[f"rmse.{exp}.cart.x"] == pytest.approx(rmse, rel=1e-6)
     _exports_round_trip(user_project, capsys, prop2, after)
+
+
+def _report_reads_well(page: str, experiments: list[str]) -> None:
+    """report.html: one self-contained page — every plot embedded as a PNG that decodes, formulas as
+    MathML, tables as tables, and no Markdown marker left in the text a reader sees."""
+    import base64
+    from html.parser import HTMLParser
+
+    class Page(HTMLParser):
+        def __init__(self) -> None:
+            super().__init__()
+            self.images: list[str] = []
+            self.tags: set[str] = set()
+            self.text: list[str] = []
+
+        def handle_starttag(self, tag: str, attrs: list) -> None:  # noqa: ANN001
+            self.tags.add(tag)
+            if tag == "img":
+                self.images.append(dict(attrs)["src"])
+
+        def handle_data(self, data: str) -> None:
+            self.text.append(data)
+
+    parsed = Page()
+    parsed.feed(page)
+    assert len(parsed.images) == len(experiments), parsed.images
+    for src in parsed.images:
+        assert src.startswith("data:image/png;base64,"), src[:60]
+        assert base64.b64decode(src.split(",", 1)[1]).startswith(b"\x89PNG\r\n\x1a\n")
+    assert {"math", "table", "th", "td", "h1", "h2", "ul", "code"} <= parsed.tags, parsed.tags
+    text = "".join(parsed.text)
+    for marker in ("**", "`", "![", "|---"):
+        assert marker not in text, (marker, text[:500])
 
 
 def _exports_round_trip(project: Path, capsys, prop_id: str, after: dict[str, float]) -> None:  # noqa: ANN001

@@ -211,6 +211,12 @@ def test_sweep_resume_structure_selection_and_reload(user_project: Path, monkeyp
     best_run = best.user_attrs[sw.RUN_ID_ATTR]
     assert tags["physmend.best_run_id"] == best_run == tags["physmend.selected_run_id"]
     assert tags["physmend.selected_by"] == "auto" and tags["physmend.selected_at"].endswith("+00:00")
+    # in the MLflow UI: the best trial carries a tag, the sweep run's description names it, the
+    # experiment is a classic ML one (its runs table, not the GenAI view)
+    marks = {k.info.run_id: store.client.get_run(k.info.run_id).data.tags.get("physmend.best") for k in kids}
+    assert marks[best_run] == "true" and all(v != "true" for r, v in marks.items() if r != best_run), marks
+    assert best_run in tags["mlflow.note.content"] and "val.rmse" in tags["mlflow.note.content"]
+    assert store.client.get_experiment(store.experiment_id).tags["mlflow.experimentKind"] == "custom_model_development"
     assert current_selection(store) == best_run
     assert f"best: trial {best.number}" in out and best_run in out
 

@@ -249,4 +249,5 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         run_id = run_.run_id
     print(summary)
     print(f"diagnose run: {run_id}  (browse: physmend ui)")
+    print("next: physmend sweep      # train corrections for what is missing (or: physmend discover, every stage)")
     return run_id

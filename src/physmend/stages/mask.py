@@ -65,12 +65,23 @@ def _retrain(work: Any, problem: Any, names: list[str], train: Any) -> Any:
     """A network that corrects only ``names``, trained; its :class:`TrainingDiverged` if it diverged."""
     from physmend.ude import TrainingDiverged
 
+    from tqdm import tqdm
+
     cfg = OmegaConf.create(OmegaConf.to_container(work))
     cfg.ude.corrected = [n for n in problem.model.state_names if n in names]
+    bar = tqdm(total=int(cfg.train.epochs), desc=f"mask: retraining {', '.join(cfg.ude.corrected)}", unit="epoch",
+               dynamic_ncols=True)
+
+    def report(epoch: int, row: dict[str, float]) -> None:
+        bar.update(max(0, min(int(epoch), bar.total) - bar.n))  # polish iterations past the epochs: the bar is full
+        bar.set_postfix_str(f"val.rmse {row.get('val.rmse', float('nan')):.4g}")
+
     try:
-        return train(cfg, problem)
+        return train(cfg, problem, report=report)
     except TrainingDiverged as exc:
         return exc
+    finally:
+        bar.close()
 
 
 @dataclass

@@ -9,7 +9,7 @@ suggests (from the mechanism catalogue). Nothing changes the user's model until 
 
 from __future__ import annotations
 
-import html
+import io
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -38,50 +38,6 @@ def _rmse(err: torch.Tensor) -> float:
     return float(e.pow(2).mean().sqrt()) if e.numel() else float("nan")
 
 
-def md_to_html(md: str, title: str) -> str:
-    """A small Markdown subset (headings, tables, lists, images, paragraphs) as a standalone page."""
-    out, in_table, in_list = [], False, False
-    for line in md.splitlines():
-        if line.startswith("|"):
-            cells = [c.strip() for c in line.strip("|").split("|")]
-            if all(set(c) <= set("-: ") for c in cells):
-                continue
-            tag = "th" if not in_table else "td"
-            if not in_table:
-                out.append("<table>")
-                in_table = True
-            out.append("<tr>" + "".join(f"<{tag}>{html.escape(c)}</{tag}>" for c in cells) + "</tr>")
-            continue
-        if in_table:
-            out.append("</table>")
-            in_table = False
-        if line.startswith("- "):
-            if not in_list:
-                out.append("<ul>")
-                in_list = True
-            out.append(f"<li>{html.escape(line[2:])}</li>")
-            continue
-        if in_list:
-            out.append("</ul>")
-            in_list = False
-        if line.startswith("#"):
-            level = len(line) - len(line.lstrip("#"))
-            out.append(f"<h{level}>{html.escape(line[level:].strip())}</h{level}>")
-        elif line.startswith("![") and "](" in line:
-            alt, src = line[2:].split("](", 1)
-            out.append(f'<img alt="{html.escape(alt)}" src="{html.escape(src.rstrip(")"))}" style="max-width:100%">')
-        elif line.startswith("    "):
-            out.append(f"<pre>{html.escape(line.strip())}</pre>")
-        elif line.strip():
-            out.append(f"<p>{html.escape(line)}</p>")
-    if in_table:
-        out.append("</table>")
-    if in_list:
-        out.append("</ul>")
-    style = "body{font-family:sans-serif;max-width:70em;margin:auto}table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px}"
-    return f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{style}</style></head><body>{''.join(out)}</body></html>"
-
-
 def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run the propose stage on a symbolic run (default: the latest); returns the new run ID."""
     import matplotlib
@@ -91,6 +47,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
     from physmend.explain.mechanisms import classify
     from physmend.explain.plots import fit_figure
+    from physmend.explain.report import mathml, to_html
     from physmend.explain.residuals import noise_floor
     from physmend.modeling import read_corrections
     from physmend.modeling.expressions import parse_expression
@@ -150,16 +107,21 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         vals = torch.as_tensor(vals).expand(len(next(iter(samples.values())))).numpy()
         units = {n: sm.units.get(n, "") for n in samples}
         matches = classify(expr_num, {n: samples[n] for n in samples if n in {s.name for s in expr_num.free_symbols}}, units)
-        terms.append({"state": c.state, "term": c.term, "constants": consts, "unit": c.unit, "expr": str(expr_num),
+        terms.append({"state": c.state, "term": c.term, "sympy": expr, "constants": consts, "unit": c.unit, "expr": str(expr_num),
                       "equation": before.model.equation_text.get(c.state, ""), "owner": sm.owner.get(c.state, ""),
                       "mean_abs": float(np.mean(np.abs(vals))), "max_abs": float(np.max(np.abs(vals))),
                       "mechanisms": [m.__dict__ for m in matches]})
     title = f"physmend proposal — model {before.model.name}"
     md = [f"# {title}", "", f"Source: symbolic run {src_run.info.run_id}. Nothing changes your model until "
           f"`physmend accept <this run>`.", "", "## Equations corrected", ""]
+    math: dict[str, str] = {}  # code-span text -> MathML, for the HTML page
     for t in terms:
-        consts = ", ".join(f"{k} = {v:.4g}" for k, v in t["constants"].items())
-        md += [f"- **{t['state']}** (component `{t['owner']}`): {t['equation']}  **+ {t['term']}**"
+        consts = ", ".join(f"`{k} = {v:.4g}`" for k, v in t["constants"].items())
+        eq = before.model.equations.get(t["state"])
+        if eq is not None and t["equation"]:
+            math[t["equation"]] = mathml(sp.Eq(eq.lhs, eq.rhs, evaluate=False))
+        math[t["term"]] = mathml(t.pop("sympy"))
+        md += [f"- **{t['state']}** (component `{t['owner']}`): `{t['equation']}`, plus the term `{t['term']}`"
                + (f" with {consts}" if consts else ""),
                f"- size along the training trajectories: mean |term| = {t['mean_abs']:.3g} {t['unit']}, "
                f"max |term| = {t['max_abs']:.3g} {t['unit']}"]
@@ -189,8 +151,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         run_.log_metrics({f"rmse_after.{r['experiment']}.{r['output']}": r["after"] for r in rows})
         run_.log_json({"rows": rows, "terms": terms}, "proposal.json")
         run_.log_text(report, "report.md")
-        run_.log_text(md_to_html(report, title), "report.html")
         run_.log_text(Path(corr_path).read_text(), "corrections.yaml")
+        images: dict[str, bytes] = {}  # embedded in report.html, which then shows them wherever it is opened
         if bool(cfg.propose.plots):
             t = batch.t.numpy()
             for b, e in enumerate(before.experiments):
@@ -199,8 +161,17 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                 fig = fit_figure(t, batch.obs[:, b].numpy(), curves, outs, before.model.units,
                                  f"experiment {e.id} ({e.role})", time_unit=before.time_unit)
                 run_.log_figure(fig, f"plots/fit_{e.id}.png")
+                png = io.BytesIO()
+                fig.savefig(png, format="png")
+                images[f"plots/fit_{e.id}.png"] = png.getvalue()
                 plt.close(fig)
+        run_.log_text(to_html(report, title, images, math), "report.html")
         run_id = run_.run_id
     print(report)
-    print(f"propose run: {run_id}\nnext: physmend accept {run_id}   (or: physmend reject {run_id} decide.reason='…')")
+    from physmend.redact import redact
+
+    where = redact(str(store.client.get_run(run_id).info.artifact_uri))
+    print(f"propose run: {run_id}\nreport: {where}/report.html  (and report.md; in the MLflow UI: physmend ui, this run, "
+          f"Artifacts)\nnext: physmend accept {run_id}   (or: physmend reject {run_id} decide.reason='…'; "
+          f"physmend export {run_id} for LaTeX, sympy, Python)")
     return run_id

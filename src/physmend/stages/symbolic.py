@@ -181,6 +181,19 @@ def _correction(problem: Any, state: str, front: Any, idx: int, why: str, column
     return Correction(state=state, term=sp.sstr(expr), constants=consts, unit=unit)
 
 
+#: candidates listed per equation (besides the chosen one) unless ``symbolic.verbose``
+LISTED = 5
+
+
+def listed(front: Any, chosen: int, verbose: bool) -> set[int]:
+    """Indices of the front's candidates to print: all when ``verbose``; otherwise the chosen one
+    and the :data:`LISTED` that fit the target best (highest R²)."""
+    if verbose:
+        return set(range(len(front.candidates)))
+    best = sorted(range(len(front.candidates)), key=lambda i: -front.candidates[i].r2)[:LISTED]
+    return {chosen, *best}
+
+
 def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run symbolic regression on a sensitivity run (default: the latest); returns the new run ID."""
     from physmend.modeling.corrections import constant_parameter_name
@@ -324,10 +337,16 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     for state, front in fronts.items():
         lines.append(f"## {state} (correction in {chosen[state]['unit'] or 'equation units'})")
         rec = recorded_scores.get(state)
+        shown = listed(front, chosen[state]["index"], bool(sc.get("verbose", False)))
         for i, c in enumerate(front.candidates):
+            if i not in shown:
+                continue
             mark = "→" if i == chosen[state]["index"] else " "
             extra = f"  recorded R² {rec[i][1]:.4f}" if rec else ""
             lines.append(f" {mark} [{i}] complexity {c.complexity:3d}  R² {c.r2:.4f}{extra}  {c.text}")
+        if len(shown) < len(front.candidates):
+            lines.append(f"   ({len(front.candidates) - len(shown)} more on the front: pareto.json of this run, or "
+                         "symbolic.verbose=true)")
         lines.append(f"   chosen: {chosen[state]['why']}")
     lines.append("")
     for c in corrections:

@@ -98,6 +98,13 @@ SCREEN_STEPS = 3
 SCREEN_KEEP = 8
 
 
+def _bar(items: Any, desc: str) -> Any:
+    """``items`` with a progress bar (each is a model simulated and re-fitted: seconds)."""
+    from tqdm import tqdm
+
+    return tqdm(list(items), desc=desc, unit="formula", dynamic_ncols=True)
+
+
 def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build: Any,
                          refit_steps: int = 0) -> tuple[int, str]:
     """The formula for ``state`` whose corrected *model* best reproduces the training records.
@@ -154,13 +161,13 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
         # screening: every candidate with a few steps, the best SCREEN_KEEP by that BIC re-fitted in full
         # (from the segment starts of the model as written: a candidate's own start guesses cost a
         # forced solve each, the finalists get theirs)
-        first = [loss_of(i, SCREEN_STEPS, screening=True) for i in range(count)]
+        first = [loss_of(i, SCREEN_STEPS, screening=True) for i in _bar(range(count), f"symbolic: {state}, screening")]
         finalists = sorted(range(count), key=lambda i: bic_of(i, first[i]))[:SCREEN_KEEP]
         losses = [float("inf")] * count
-        for i in finalists:
+        for i in _bar(finalists, f"symbolic: {state}, finalists re-fitted"):
             losses[i] = loss_of(i, refit_steps)
     else:
-        losses = [loss_of(i, refit_steps) for i in range(count)]
+        losses = [loss_of(i, refit_steps) for i in _bar(range(count), f"symbolic: {state}, each formula re-fitted")]
     bic = [bic_of(i, v) for i, v in enumerate(losses)]
     if not np.isfinite(bic).any():
         return 0, (f"Rule 'simulated': no formula for {state} gave a corrected model whose segments could be "

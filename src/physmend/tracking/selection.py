@@ -35,6 +35,8 @@ STORAGE_TAG = "physmend.optuna_storage"
 TRIAL_NUMBER_TAG = "physmend.trial_number"
 TRIAL_STATE_TAG = "physmend.trial_state"
 BEST_TAG = "physmend.best_run_id"
+#: on a trial run: "true" for its sweep's automatic best (shown in the MLflow UI's runs table)
+MARK_TAG = "physmend.best"
 SELECTED_TAG = "physmend.selected_run_id"
 SELECTED_BY_TAG = "physmend.selected_by"
 SELECTED_AT_TAG = "physmend.selected_at"
@@ -155,6 +157,19 @@ def select(store: Store, run_id: str, *, by: str | None = None) -> Selection:
 def record_auto_selection(store: Store, sweep_run_id: str, best_run_id: str) -> Selection:
     """Record the automatic best on the sweep run; it becomes the selection unless a person chose one."""
     store.client.set_tag(sweep_run_id, BEST_TAG, best_run_id)
+    # visible in the MLflow UI: a tag on the trial itself (the runs table can show and filter it) and the
+    # sweep run's description
+    for other in store.client.search_runs([store.experiment_id], filter_string=f"tags.`{MARK_TAG}` = 'true' "
+                                          f"and tags.`{PARENT_TAG}` = '{sweep_run_id}'"):
+        if other.info.run_id != best_run_id:
+            store.client.set_tag(other.info.run_id, MARK_TAG, "false")
+    store.client.set_tag(best_run_id, MARK_TAG, "true")
+    best = store.client.get_run(best_run_id)
+    val = best.data.metrics.get("val.rmse")
+    store.client.set_tag(sweep_run_id, "mlflow.note.content",
+                         f"Best trial: {best.info.run_name or best_run_id} (run {best_run_id})"
+                         + (f", val.rmse {val:.4g}" if val is not None else "")
+                         + f". Trials are this run's children; the best carries the tag {MARK_TAG}=true.")
     sweep = store.client.get_run(sweep_run_id)
     tags = sweep.data.tags
     if tags.get(SELECTED_TAG) and tags.get(SELECTED_BY_TAG, AUTO) != AUTO:

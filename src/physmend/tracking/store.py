@@ -86,7 +86,33 @@ def _reason(exc: BaseException) -> str:
         text = text.replace(noise, "")
     if isinstance(exc, KeyError):
         text = f"unknown scheme {text}"
+    if isinstance(exc, ModuleNotFoundError):  # SQLAlchemy's driver for the scheme is not installed
+        text = (f"its database driver is not installed ({text}); for PostgreSQL: pip install 'physmend[postgres]' "
+                "and a URI postgresql+psycopg2://…")
     return redact(text[:300])
+
+
+#: tracking URI schemes of a database that MLflow reaches directly (no server in between)
+DATABASE_SCHEMES = ("postgresql", "mysql", "mssql")
+
+
+def _artifact_location(tracking_cfg: Any, uri: str, db: Path | None, name: str) -> str | None:
+    """Where a new experiment's artifacts go: ``tracking.artifact_location`` when set; beside an sqlite
+    database; the server's choice behind an ``http(s)://`` URI. A database reached directly with no
+    location set is an error: MLflow would write ``./mlruns`` in whichever folder each stage ran."""
+    chosen = tracking_cfg.get("artifact_location")
+    if chosen:
+        return str(chosen)
+    if db is not None:
+        return (db.parent / "mlartifacts" / name).as_uri()
+    scheme = uri.split(":", 1)[0].split("+", 1)[0].lower()
+    if scheme in DATABASE_SCHEMES:
+        raise TrackingError(
+            f"tracking.uri {redact(uri)!r} is a database reached directly: set tracking.artifact_location to a folder "
+            "or URI every machine can reach (e.g. s3://bucket/physmend or /shared/mlartifacts), or run an MLflow "
+            "tracking server on it (mlflow server --backend-store-uri … --artifacts-destination …) and set "
+            "tracking.uri=http://HOST:PORT (README: Many machines)")
+    return None
 
 
 def open_store(tracking_cfg: Any) -> Store:
@@ -117,8 +143,13 @@ def open_store(tracking_cfg: Any) -> Store:
             client = MlflowClient(tracking_uri=uri)
             exp = client.get_experiment_by_name(name)
             if exp is None:
-                artifact_location = (db.parent / "mlartifacts" / name).as_uri() if db is not None else None
-                exp_id = client.create_experiment(name, artifact_location=artifact_location)
+                artifact_location = _artifact_location(tracking_cfg, uri, db, name)
+                # a classic ML experiment: the MLflow UI opens on its runs table (MLflow 3 opens an experiment
+                # without a kind in its GenAI view)
+                exp_id = client.create_experiment(name, artifact_location=artifact_location, tags={
+                    "mlflow.experimentKind": "custom_model_development",
+                    "mlflow.note.content": "physmend: diagnose, sweep trials (val.rmse), mask, sensitivity, symbolic "
+                                           "and propose runs; a sweep's best trial is tagged physmend.best"})
     except TrackingError:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to open the store is one line naming it

@@ -35,23 +35,25 @@ def _free_port() -> int:
 
 
 @pytest.fixture
-def postgres(tmp_path: Path) -> Iterator[str]:
+def postgres() -> Iterator[str]:
     """A PostgreSQL server in a temporary folder: yields ``host:port`` (user postgres, trust auth)."""
     initdb, pg_ctl = shutil.which("initdb"), shutil.which("pg_ctl")
     if not initdb or not pg_ctl:
         pytest.skip("no PostgreSQL binaries (initdb, pg_ctl) on this machine")
     pytest.importorskip("psycopg2", reason="psycopg2 is not installed (pip install -e '.[test]')")
+    import tempfile
+
     as_user: list[str] = []
-    data = tmp_path / "pg"
-    data.mkdir()
+    # outside pytest's folder (its parents are private to this user: another user's server cannot enter)
+    data = Path(tempfile.mkdtemp(prefix="physmend-pg-"))
     if os.geteuid() == 0:  # initdb refuses to run as root: run the server as the postgres user
         import pwd
 
         try:
             pw = pwd.getpwnam("postgres")
         except KeyError:
+            shutil.rmtree(data)
             pytest.skip("running as root and no 'postgres' user to run PostgreSQL as")
-        os.chmod(tmp_path, 0o755)
         os.chown(data, pw.pw_uid, pw.pw_gid)
         as_user = ["runuser", "-u", "postgres", "--"]
     port = _free_port()
@@ -71,6 +73,7 @@ def postgres(tmp_path: Path) -> Iterator[str]:
         yield f"127.0.0.1:{port}"
     finally:
         subprocess.run([*as_user, pg_ctl, "-D", str(data / "db"), "-m", "immediate", "stop"], capture_output=True)
+        shutil.rmtree(data, ignore_errors=True)
 
 
 @pytest.fixture

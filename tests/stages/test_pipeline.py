@@ -64,6 +64,12 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     test_row = next(r for r in proposal["rows"] if r["role"] == "test")
     assert test_row["after"] < test_row["before"]
     assert {"report.md", "report.html", "corrections.yaml"} <= {a.path for a in client.list_artifacts(prop_id)}
+    # each stage's run says what it found, in the MLflow UI's description, and names its source
+    notes = {name: client.get_run(rid).data.tags.get("mlflow.note.content", "")
+             for name, rid in (("mask", mask_id), ("symbolic", sym_id), ("propose", prop_id))}
+    assert notes["mask"].startswith("Kept corrections: cart.v") and "Source trial:" in notes["mask"], notes
+    assert notes["symbolic"].startswith("Formulas: cart.v: + ") and sens_id in notes["symbolic"], notes
+    assert "Held-out RMSE improved" in notes["propose"] and sym_id in notes["propose"], notes
     _report_reads_well(Path(client.download_artifacts(prop_id, "report.html", str(user_project))).read_text(),
                        [e for e in after])
 

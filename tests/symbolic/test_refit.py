@@ -3,6 +3,8 @@ on a real user model: the oscillator whose telemetry carries a quadratic drag th
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +30,14 @@ def _setup(project: Path, c1: float) -> tuple:
     return cfg, corrections, problem, ref
 
 
-def test_constant_bounds_keep_the_sign() -> None:
-    assert constant_bounds(2.0) == (0.1, 40.0)
-    assert constant_bounds(-2.0) == (-40.0, -0.1)
-    assert constant_bounds(0.0) == (-1.0, 1.0)
+def test_no_box_around_the_regressions_constant(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A discovered term's constants have no declared bounds: a regression that sized the drag 30×
+    too small (outside the ×/÷20 box the re-fit once had) still re-fits to the truth."""
+    assert constant_bounds(2.0) == constant_bounds(-2.0) == (-math.inf, math.inf)
+    monkeypatch.chdir(user_project)
+    cfg, corrections, problem, ref = _setup(user_project, -0.03)
+    fitted, result = refit(cfg, problem, ref, corrections, 50)
+    assert abs(fitted[0].constants["c1"] + 0.9) < 0.05, (fitted[0].constants, result)
 
 
 def test_jacobian_matches_autograd(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -136,3 +142,4 @@ def test_a_corrected_model_that_cannot_be_simulated_says_why(user_project: Path,
     problem = corrected_problem(cfg, [Correction(state="cart.v", term=DRAG, constants={"c1": 50.0}, unit="N")])
     ref, trouble = simulate_corrected(problem, cfg)
     assert ref is None and trouble is not None and "integration failed for experiment" in trouble
+

@@ -227,6 +227,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                 "simulate.method": cfg.simulate.method,
             }
         )
+        worst = max(analysis["fits"], key=lambda f: f["rmse"] / f["noise"] if f["noise"] > 0 else 0.0, default=None)
+        if worst is not None and worst["noise"] > 0:
+            run_.describe(f"The model as written misses by up to {worst['rmse'] / worst['noise']:.1f}× the estimated sensor "
+                          f"noise ({worst['output']}, experiment {worst['experiment']}). Next: physmend sweep.")
         metrics: dict[str, float] = {}
         for f in analysis["fits"]:
             key = f"{f['experiment']}.{f['output']}"

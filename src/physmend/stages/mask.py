@@ -205,6 +205,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                        "retrained": [{"corrected": names, "val.rmse": _val(r),
                                       "error": None if not isinstance(r, Exception) else str(r)} for names, r in tried]},
                       "ranking.json")
+        run_.describe(f"Kept corrections: {', '.join(kept_in_order)} (of {len(hybrid.spec.corrected)} the network corrects); "
+                      + (f"retrained, validation RMSE {result.val_rmse:.4g}" if result is not None
+                         else f"the source network masked, validation RMSE {full if own else dict(by_k).get(k, full):.4g}")
+                      + f". Source trial: {src_run.info.run_id}. Next: physmend sensitivity <this run>.")
         fig = _plot(ranking, by_k or [(k, full)], full, k)
         run_.log_figure(fig, "plots/ranking.png")
         plt.close(fig)

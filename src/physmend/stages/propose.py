@@ -151,6 +151,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         run_.log_metrics({f"rmse_after.{r['experiment']}.{r['output']}": r["after"] for r in rows})
         run_.log_json({"rows": rows, "terms": terms}, "proposal.json")
         run_.log_text(report, "report.md")
+        run_.describe("Corrections: " + "; ".join(f"{t['state']} + {t['term']}" for t in terms)
+                      + (f". Held-out RMSE improved {min(r['improvement'] for r in held):.1f}× to "
+                         f"{max(r['improvement'] for r in held):.1f}×" if held else "")
+                      + f". Report: report.html. Source symbolic run: {src_run.info.run_id}. "
+                      "Next: physmend accept <this run> (or reject, or export).")
         run_.log_text(Path(corr_path).read_text(), "corrections.yaml")
         images: dict[str, bytes] = {}  # embedded in report.html, which then shows them wherever it is opened
         if bool(cfg.propose.plots):

@@ -87,6 +87,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                        "groups": [{"representative": g.representative, "members": g.members, "score": sc}
                                   for g, sc in grouped],
                        "matrix": mag.tolist()}, "sensitivity.json")
+        run_.describe(f"Inputs for symbolic regression: {', '.join(chosen)} (kept corrections: {', '.join(kept)}). "
+                      f"Source mask run: {src_run.info.run_id}. Next: physmend symbolic <this run>.")
         fig = _heatmap(mag, names, kept, chosen)
         run_.log_figure(fig, "plots/sensitivity.png")
         plt.close(fig)

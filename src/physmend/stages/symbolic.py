@@ -330,6 +330,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                                       "corrections": [c.to_dict() for c in corrections]}, sort_keys=False),
                       "corrections.yaml")
         run_.log_metrics({k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse", "test.rmse")})
+        run_.describe("Formulas: " + "; ".join(
+            f"{c.state}: + {c.term} ({', '.join(f'{k} = {v:.4g}' for k, v in c.constants.items())})" for c in corrections)
+            + f". Corrected model, validation RMSE {metrics.get('val.rmse', float('nan')):.4g}. Source sensitivity run: "
+            f"{sens_run.info.run_id}. Next: physmend propose <this run>.")
         run_id = run_.run_id
     lines = [f"# physmend symbolic — {sc.backend}, inputs {', '.join(x_names)}", ""]
     if fallback:

@@ -39,13 +39,12 @@ MAX_ELEMENTS = 30_000_000
 
 
 def constant_bounds(value: float) -> tuple[float, float]:
-    """Where a constant may move: the same sign, a factor 20 either way (``(-1, 1)`` for 0)."""
-    value = float(value)
-    if value > 0:
-        return value / 20, value * 20
-    if value < 0:
-        return value * 20, value / 20
-    return -1.0, 1.0
+    """Where a formula's constant may move in the re-fit: anywhere (``(-inf, inf)``). A discovered
+    term's constants have no physically declared bounds, and a box around the regression's value
+    (it was ×/÷20) would only hide a regression that sized the term wrong; the Levenberg–Marquardt
+    steps are safe without one (a step whose segments leave the finite range is refused), and the
+    standard error says when the data cannot pin a constant down. ``value`` is unused."""
+    return -math.inf, math.inf
 
 
 @dataclass
@@ -178,7 +177,8 @@ class _Shooting:
         u0, traj0, y0 = base
         r0 = self._residuals_of(u0, traj0, y0)
         p0 = self.with_constants(theta)
-        step_t = self.h * torch.maximum(theta.abs(), 1e-3 * (self.hi - self.lo))
+        # relative steps (a constant of 0: an absolute one)
+        step_t = self.h * torch.where(theta != 0, theta.abs(), torch.ones_like(theta))
         # directions: state i of every start (n), then constant k (K)
         dirs = list(range(self.n + self.K))
         per_copy = traj0.shape[0] * self.S * max(self.n, y0.shape[-1])
@@ -259,7 +259,7 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
         cfg: configuration with ``train.step``, ``train.segment_length``, ``train.continuity_weight``
             and ``train.warm_start`` (as training uses them).
         ref: the whole-trajectory simulation of ``problem`` (:func:`physmend.ude.reference.reference`).
-        names: parameter names of the constants; each stays on its sign, within a factor 20.
+        names: parameter names of the constants (unbounded: :func:`constant_bounds`).
         max_iterations: at most this many accepted Levenberg–Marquardt steps.
         rtol: stop when a step lowers the loss by less than this fraction.
         uncertainty: compute the constants' standard errors (one more Jacobian) — not needed

@@ -22,6 +22,8 @@ SOURCE_TAG = "physmend.source_run_id"
 MODEL_TAG = "physmend.model"
 DATA_TAG = "physmend.data"
 ERROR_TAG = "physmend.error"
+#: MLflow's run description (shown on the run's page)
+NOTE_TAG = "mlflow.note.content"
 
 
 class StageRun:
@@ -47,6 +49,12 @@ class StageRun:
         import mlflow
 
         mlflow.set_tags({k: redact(str(v)) for k, v in tags.items()})
+
+    def describe(self, text: str) -> None:
+        """The run's description in the MLflow UI (Markdown): what the stage found."""
+        import mlflow
+
+        mlflow.set_tag(NOTE_TAG, redact(text)[:5000])
 
     def log_text(self, text: str, path: str) -> None:
         import mlflow
@@ -91,6 +99,8 @@ def stage_run(
         MODEL_TAG: str(OmegaConf.select(cfg, "model.builder", default="")),
         DATA_TAG: str(OmegaConf.select(cfg, "data.name", default="")),
     }
+    if source_run_id:  # until the stage describes what it found
+        all_tags[NOTE_TAG] = f"physmend {stage}, from run {source_run_id}"
     all_tags.update(tags or {})
     with mlflow.start_run(
         experiment_id=store.experiment_id,

@@ -61,29 +61,6 @@ def rivals(kept: list[str], order: list[str], n: int, measured: set[str] | None 
     return sets + [kept[:-1] + [name] for name in others[:n] if kept[:-1] + [name] not in sets]
 
 
-def _retrain(work: Any, problem: Any, names: list[str], train: Any) -> Any:
-    """A network that corrects only ``names``, trained; its :class:`TrainingDiverged` if it diverged."""
-    from physmend.ude import TrainingDiverged
-
-    from tqdm import tqdm
-
-    cfg = OmegaConf.create(OmegaConf.to_container(work))
-    cfg.ude.corrected = [n for n in problem.model.state_names if n in names]
-    bar = tqdm(total=int(cfg.train.epochs), desc=f"mask: retraining {', '.join(cfg.ude.corrected)}", unit="epoch",
-               dynamic_ncols=True)
-
-    def report(epoch: int, row: dict[str, float]) -> None:
-        bar.update(max(0, min(int(epoch), bar.total) - bar.n))  # polish iterations past the epochs: the bar is full
-        bar.set_postfix_str(f"val.rmse {row.get('val.rmse', float('nan')):.4g}")
-
-    try:
-        return train(cfg, problem, report=report)
-    except TrainingDiverged as exc:
-        return exc
-    finally:
-        bar.close()
-
-
 @dataclass
 class SourceNetwork:
     """The mask's source network standing for a retraining of its own equation set (``val_rmse``:
@@ -135,6 +112,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     import matplotlib.pyplot as plt
 
     from physmend.stages.common import load_source, log_artifacts, log_training, merged, resolve
+    from physmend.stages.mask_retrain import retrain_all, workers
     from physmend.tracking import TrackingError, open_store, stage_run
     from physmend.ude import TrainingDiverged, evaluate, train
     from physmend.ude.analysis import rank_corrections, training_trajectories
@@ -182,8 +160,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         # retraining the source network's own set with the source's settings gives the source network
         # (same configuration, same seed): it stands for itself
         same = sorted(kept) == sorted(hybrid.spec.corrected) and not list(mc.train_overrides)
-        tried = [(names, SourceNetwork(full) if same and names is kept else _retrain(work, problem, names, train))
-                 for names in sets]
+        todo = [names for names in sets if not (same and names is kept)]
+        done = iter(retrain_all(work, problem, todo, train, workers(mc.get("workers", "auto"))))
+        tried = [(names, SourceNetwork(full) if same and names is kept else next(done)) for names in sets]
         if any(not isinstance(r, Exception) for _, r in tried):
             kept, result = best_retrained(tried, float(mc.tolerance))
             k = len(kept)

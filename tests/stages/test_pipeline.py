@@ -70,8 +70,9 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     assert notes["mask"].startswith("Kept corrections: cart.v") and "Source trial:" in notes["mask"], notes
     assert notes["symbolic"].startswith("Formulas: cart.v: + ") and sens_id in notes["symbolic"], notes
     assert "Held-out RMSE improved" in notes["propose"] and sym_id in notes["propose"], notes
-    _report_reads_well(Path(client.download_artifacts(prop_id, "report.html", str(user_project))).read_text(),
-                       [e for e in after])
+    page = Path(client.download_artifacts(prop_id, "report.html", str(user_project)))
+    _report_reads_well(page.read_text(), [e for e in after])
+    _report_in_chromium(page, len(after), user_project / "report.png")
 
     # reject changes nothing but tags
     before_files = sorted(p.name for p in user_project.iterdir())
@@ -130,6 +131,53 @@ def _report_reads_well(page: str, experiments: list[str]) -> None:
     text = "".join(parsed.text)
     for marker in ("**", "`", "![", "|---"):
         assert marker not in text, (marker, text[:500])
+
+
+def _chromium() -> str | None:
+    """A headless Chromium: the one installed, or the Debian package installed now (as root with apt)."""
+    import os
+    import shutil
+    import subprocess
+
+    found = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    if found or os.geteuid() != 0 or not shutil.which("apt-get"):
+        return found
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    for cmd in (["apt-get", "update", "-q"], ["apt-get", "install", "-y", "-q", "--no-install-recommends", "chromium"]):
+        if subprocess.run(cmd, env=env, capture_output=True, timeout=600).returncode != 0:
+            return None
+    return shutil.which("chromium")
+
+
+def _report_in_chromium(page: Path, n_images: int, shot: Path) -> None:
+    """report.html in a real browser: every image loaded (decoded, non-zero width), the MathML there,
+    and a screenshot that is not blank."""
+    import re
+    import subprocess
+
+    from PIL import Image
+
+    browser = _chromium()
+    if browser is None:
+        pytest.skip("no Chromium here, and it could not be installed (needs root and apt-get)")
+    probe = page.with_name("probe.html")  # a copy with a script that counts what loaded: the report has none
+    probe.write_text(page.read_text().replace("</body>", (
+        "<script>window.addEventListener('load', () => { const im = Array.from(document.images);"
+        "document.body.dataset.images = im.length;"
+        "document.body.dataset.loaded = im.filter(i => i.complete && i.naturalWidth > 0).length;"
+        "document.body.dataset.math = document.querySelectorAll('math').length; });</script></body>")))
+    flags = ["--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars"]
+    dom = subprocess.run([browser, *flags, "--virtual-time-budget=5000", "--dump-dom", probe.as_uri()],
+                         capture_output=True, text=True, timeout=120).stdout
+    body = re.search(r"<body[^>]*>", dom)
+    assert body, dom[:500]
+    attrs = dict(re.findall(r'data-(\w+)="(\d+)"', body.group(0)))
+    assert attrs.get("images") == attrs.get("loaded") == str(n_images) and int(attrs.get("math", 0)) >= 2, attrs
+    subprocess.run([browser, *flags, "--window-size=1280,2000", f"--screenshot={shot}", page.as_uri()],
+                   capture_output=True, timeout=120, check=True)
+    with Image.open(shot) as img:
+        colours = img.convert("RGB").resize((128, 200)).getcolors(maxcolors=1 << 16)
+    assert colours is not None and len(colours) > 20, "the screenshot is blank"
 
 
 def _exports_round_trip(project: Path, capsys, prop_id: str, after: dict[str, float]) -> None:  # noqa: ANN001

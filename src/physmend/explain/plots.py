@@ -34,8 +34,8 @@ def fit_figure(
         ax = axes[j, 0]
         m = np.isfinite(measured[:, j])
         ax.plot(t_axis[m], measured[m, j], ".", ms=2, color="0.5", label="measured")
-        for label, values, style in curves:
-            ax.plot(t_axis, values[:, j], label=label, **style)
+        for name, values, style in curves:  # (not `label`: that is the time axis's)
+            ax.plot(t_axis, values[:, j], label=name, **style)
         if split is not None:
             ax.axvline(split / divisor, color="k", lw=0.6, ls=":")
         ax.set_ylabel(f"{out} [{units.get(out, '')}]")

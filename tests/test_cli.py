@@ -38,3 +38,12 @@ def test_a_stray_word_or_option_is_one_line_and_exit_2(capsys: pytest.CaptureFix
             parse(_parser(), argv)
         assert exc.value.code == 2
         assert said in capsys.readouterr().err
+
+
+def test_ui_on_a_tracking_server_prints_where_to_look(capsys: pytest.CaptureFixture[str]) -> None:
+    """A tracking server is its own UI: ``physmend ui`` says where to open it (no password) and starts nothing."""
+    from physmend.cli import main
+
+    assert main(["ui", "tracking.uri=http://me:s3cret@127.0.0.1:9"]) == 0
+    out = capsys.readouterr().out
+    assert "open http://me:***@127.0.0.1:9" in out and "s3cret" not in out

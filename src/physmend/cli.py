@@ -129,8 +129,8 @@ def _ui(args: argparse.Namespace) -> int:
     from physmend.redact import redact
 
     if uri.lower().startswith(("http://", "https://")):  # a tracking server is its own UI
-        print(f"tracking.uri is an MLflow tracking server: open {redact(uri)} in a browser "
-              f"(experiment {cfg.tracking.experiment!r})")
+        print(f"tracking.uri is an MLflow tracking server: open {redact(_ui_page(uri.rstrip('/'), uri, cfg))} "
+              f"in a browser (experiment {cfg.tracking.experiment!r})")
         return 0
     db = sqlite_path(uri)
     if db is not None:
@@ -138,7 +138,28 @@ def _ui(args: argparse.Namespace) -> int:
     cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", args.host,
            "--port", str(args.port), "--workers", "1"]
     print("running:", redact(" ".join(cmd)))
+    page = _ui_page(f"http://{args.host}:{args.port}", uri if db is None or db.exists() else None, cfg)
+    print(f"open: {redact(page)}")
     return subprocess.call(cmd)
+
+
+def _ui_page(base: str, store_uri: str | None, cfg) -> str:  # noqa: ANN001
+    """The experiment's runs table in the MLflow UI (``workflowType=machine_learning``: MLflow 3's UI
+    otherwise opens its GenAI view, whatever the experiment); ``base`` alone when the experiment
+    cannot be looked up (no store yet, a server that does not answer)."""
+    if store_uri is None:
+        return base
+    try:
+        import os
+
+        os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
+        os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
+        from mlflow.tracking import MlflowClient
+
+        exp = MlflowClient(tracking_uri=store_uri).get_experiment_by_name(str(cfg.tracking.experiment))
+    except Exception:  # noqa: BLE001 - the URL is a convenience; the UI starts regardless
+        return base
+    return base if exp is None else f"{base}/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning"
 
 
 #: what a store library says when the disk under it is full or cannot be written (sqlite, via MLflow)

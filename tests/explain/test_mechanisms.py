@@ -176,3 +176,15 @@ def test_classify_bad_input(samples):
         classify(A - B, {T1: np.ones(5), T2: np.ones(6)}, UNITS)
     with pytest.raises(MechanismError, match="top must be an integer >= 1, but got 0"):
         classify(A - B, samples, UNITS, top=0)
+
+
+def test_a_form_outside_the_catalogue_matches_nothing(samples):
+    """A formula none of the catalogue's forms can reproduce gets no mechanism at the report's bar
+    (propose.MIN_MECHANISM_R2): the report then says so plainly and shows the formula."""
+    from physmend.stages.propose import MIN_MECHANISM_R2
+
+    odd = sympy.sin((A - B) / 7.0) * sympy.exp(-U * 4.0) * P / 1e5
+    matches = classify(odd, samples, UNITS)
+    assert all(m.r2 < MIN_MECHANISM_R2 for m in matches), [(m.id, round(m.r2, 3)) for m in matches[:3]]
+    # while the catalogue's own form, sized anyhow, is named
+    assert classify(-2.5 * (A - B), samples, UNITS)[0].r2 > 0.999

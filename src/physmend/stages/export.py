@@ -76,10 +76,17 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
              "sympy": lambda: sympy_json(sm, corrected, info),
              "python": lambda: python_module(sm, experiments, info)}
     written = {f: texts[f]() for f in formats}  # every text first: a failing writer leaves no file behind
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for f, text in written.items():
-        with open(targets[f], "x", encoding="utf-8") as fh:  # "x": never overwrite, even in a race
-            fh.write(text)
+    made: list[Path] = []
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        for f, text in written.items():
+            with open(targets[f], "x", encoding="utf-8") as fh:  # "x": never overwrite, even in a race
+                made.append(targets[f])
+                fh.write(text)
+    except OSError as exc:  # a folder that cannot be made or written: one line, none of this call's files left
+        for path in made:
+            path.unlink(missing_ok=True)
+        raise ModelError(f"export.output_dir: cannot write {exc.filename or out_dir}: {exc.strerror or exc}") from None
     print(f"# physmend export — proposal {run_id}, model {name}: {', '.join(corrected)} corrected")
     for f in formats:
         print(f"  {f:7s} {targets[f]}")

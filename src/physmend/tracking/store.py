@@ -144,8 +144,8 @@ def open_store(tracking_cfg: Any) -> Store:
             exp = client.get_experiment_by_name(name)
             if exp is None:
                 artifact_location = _artifact_location(tracking_cfg, uri, db, name)
-                # a classic ML experiment: the MLflow UI opens on its runs table (MLflow 3 opens an experiment
-                # without a kind in its GenAI view)
+                # a classic ML experiment (MLflow 3's UI still chooses its GenAI or model-training view by a
+                # browser setting or the address's workflowType: `physmend ui` prints the runs table's address)
                 exp_id = client.create_experiment(name, artifact_location=artifact_location, tags={
                     "mlflow.experimentKind": "custom_model_development",
                     "mlflow.note.content": "physmend: diagnose, sweep trials (val.rmse), mask, sensitivity, symbolic "

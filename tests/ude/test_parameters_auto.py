@@ -38,3 +38,19 @@ def test_two_values_label_experiments_three_describe_them(tmp_path: Path) -> Non
     assert informative_parameters(two) == []  # 5.0 is a test value: it counts for nothing
     three = _problem(tmp_path, [1.0, 2.0, 3.0, 5.0], ["train", "train", "train", "test"])
     assert informative_parameters(three) == ["tank.area"]  # tank.k never varies
+
+
+def test_state_and_input_selection_takes_switches_or_patterns() -> None:
+    import pytest
+
+    from physmend.ude.hybrid import UDEConfigError
+    from physmend.ude.spec import _selected
+
+    names = ["zone1.air.T", "zone1.wall.T", "zone2.air.T"]
+    assert _selected(True, names, "ude.inputs.states") == names
+    assert _selected(False, names, "ude.inputs.states") == []
+    assert _selected(["zone2.air.T", "zone1.air*"], names, "ude.inputs.states") == ["zone1.air.T", "zone2.air.T"]
+    with pytest.raises(UDEConfigError, match=r"ude.inputs.states: pattern 'cargo\.T' matches no name"):
+        _selected(["cargo.T"], names, "ude.inputs.states")
+    with pytest.raises(UDEConfigError, match="ude.inputs.inputs must be true, false or a list"):
+        _selected("some", names, "ude.inputs.inputs")

@@ -64,9 +64,9 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     named = {str(p) for p in ude.corrected}
     corrected = [n for n in corrected if n in named or n not in identity_states(problem)]
     sel = ude.inputs
-    in_states = model.state_names if bool(sel.states) else []
+    in_states = _selected(sel.states, model.state_names, "ude.inputs.states")
     in_observed = match_names(list(sel.observed or []), list(model.observed), "ude.inputs.observed")
-    in_inputs = model.input_names if bool(sel.inputs) else []
+    in_inputs = _selected(sel.inputs, model.input_names, "ude.inputs.inputs")
     if isinstance(sel.parameters, str):
         if sel.parameters != "auto":
             raise UDEConfigError(f"ude.inputs.parameters must be 'auto' or a list of names/patterns, but got {sel.parameters!r}")
@@ -115,6 +115,15 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
         estimated=estimated,
         **state_range(ref.states, mask),
     )
+
+
+def _selected(value: Any, names: list[str], key: str) -> list[str]:
+    """``true``: every name; ``false``: none; a list: the names its glob patterns match."""
+    if isinstance(value, bool):
+        return list(names) if value else []
+    if isinstance(value, str):
+        raise UDEConfigError(f"{key} must be true, false or a list of names/patterns, but got {value!r}")
+    return match_names(list(value), names, key)
 
 
 def _rms(d: torch.Tensor) -> torch.Tensor:

@@ -89,8 +89,9 @@ def _ratio_text(r: dict[str, Any] | None) -> str:
     return f"{sign}{r['value']:.3g}  (speed-up {speed}{1 / r['value']:.3g}x)" if r["value"] > 0 else "n/a"
 
 
-def _rows(pairs: list[tuple[str, str, str]], width: tuple[int, int, int] = (38, 22, 22)) -> list[str]:
-    return [f"  {k:<{width[0]}}{a:<{width[1]}}{b:<{width[2]}}".rstrip() for k, a, b in pairs]
+def _rows(rows: list[tuple[str, ...]], first: int = 38, width: int = 22) -> list[str]:
+    """Aligned rows: a label ``first`` characters wide, then columns ``width`` wide."""
+    return [(f"  {r[0]:<{first}}" + "".join(f"{c:<{width}}" for c in r[1:])).rstrip() for r in rows]
 
 
 def table(res: dict[str, Any]) -> str:
@@ -113,6 +114,7 @@ def table(res: dict[str, Any]) -> str:
 def _ttacc_lines(res: dict[str, Any]) -> list[str]:
     t, p = res["ttacc"], res["problem"]
     a, b = t.get("baseline", {}).get("summary", {}), t.get("physmend", {}).get("summary", {})
+    c = t.get("jax", {}).get("summary", {})
     n = res["noise"]
     lines = [
         "",
@@ -124,48 +126,58 @@ def _ttacc_lines(res: dict[str, Any]) -> list[str]:
         f"{t.get('physmend_patience', '-')} evals = same epochs); cap {t['cap_s']:.0f} s; median of {t['repeats']} repeat(s), "
         "alternating a, b",
         "",
-        f"  {'':<38}{'(a) torchdiffeq':<22}{'(b) physmend'}",
+        f"  {'':<38}{'(a) torchdiffeq':<22}{'(b) physmend':<22}{'(c) JAX + diffrax' if c else ''}".rstrip(),
     ]
 
     def g(s: dict[str, Any], key: str, fmt: str = "{:.3g}", scale: float = 1.0) -> str:
         v = s.get(key, float("nan")) if s else float("nan")
         return _num(v * scale if isinstance(v, (int, float)) else v, fmt)
 
+    def reached(s: dict[str, Any]) -> str:
+        return f"{s.get('reached', 0)}/{s.get('runs', 0)}" if s else "-"
+
+    def flops_row(s: dict[str, Any]) -> str:
+        return _num((s.get("rhs_flops") or {}).get("total"), "{:d}") if s else "-"
+
     rows = [
-        ("time to target [s]", _time(a), _time(b)),
-        ("  excl. evaluations [s]", _excl(a), _excl(b) + (" (est.)" if b and math.isfinite(b["time_excl_eval_s"]) else "")),
-        ("reached / runs", f"{a.get('reached', 0)}/{a.get('runs', 0)}" if a else "-", f"{b.get('reached', 0)}/{b.get('runs', 0)}" if b else "-"),
-        ("epochs (at stop)", g(a, "epochs", "{:.0f}"), g(b, "epochs", "{:.0f}")),
-        ("wall per epoch, incl. eval [s]", g(a, "s_per_epoch"), g(b, "s_per_epoch")),
-        ("train step per epoch [s]", g(a, "train_s_per_epoch"), g(b, "train_s_per_epoch") + (" (est.)" if b else "")),
-        ("one evaluation [s]", g(a, "eval_s"), g(b, "eval_s")),
-        ("RHS rows per epoch", g(a, "rows_per_epoch", "{:.4g}"), g(b, "rows_per_epoch", "{:.4g}")),
-        ("FLOPs per RHS row", _num((a.get("rhs_flops") or {}).get("total"), "{:d}") if a else "-",
-         _num((b.get("rhs_flops") or {}).get("total"), "{:d}") if b else "-"),
-        ("GFLOP per epoch (est.)", g(a, "flops_per_epoch", "{:.3g}", 1e-9), g(b, "flops_per_epoch", "{:.3g}", 1e-9)),
-        ("GFLOP one-off, before epoch 1 (est.)", "-" if not a else "0", g(b, "setup_flops", "{:.3g}", 1e-9)),
-        ("val.rmse at stop", g(a, "val_rmse_at_stop", "{:.4g}"), g(b, "val_rmse_at_stop", "{:.4g}")),
-        ("best val.rmse of the run", g(a, "best_val_rmse", "{:.4g}"), g(b, "best_val_rmse", "{:.4g}")),
-        ("peak RSS [MiB]", g(a, "peak_rss_mib", "{:.0f}"), g(b, "peak_rss_mib", "{:.0f}")),
-        ("peak RSS after loading only [MiB]", g(a, "rss_after_load_mib", "{:.0f}"), g(b, "rss_after_load_mib", "{:.0f}")),
-        ("run statuses", ",".join(a.get("statuses", [])) or "-", ",".join(b.get("statuses", [])) or "-"),
+        ("time to target [s]", _time(a), _time(b), _time(c)),
+        ("  excl. evaluations [s]", _excl(a), _excl(b) + (" (est.)" if b and math.isfinite(b["time_excl_eval_s"]) else ""), _excl(c)),
+        ("reached / runs", reached(a), reached(b), reached(c)),
+        ("epochs (at stop)", g(a, "epochs", "{:.0f}"), g(b, "epochs", "{:.0f}"), g(c, "epochs", "{:.0f}")),
+        ("wall per epoch, incl. eval [s]", g(a, "s_per_epoch"), g(b, "s_per_epoch"), g(c, "s_per_epoch")),
+        ("train step per epoch [s]", g(a, "train_s_per_epoch"), g(b, "train_s_per_epoch") + (" (est.)" if b else ""),
+         g(c, "train_s_per_epoch")),
+        ("one evaluation [s]", g(a, "eval_s"), g(b, "eval_s"), g(c, "eval_s")),
+        ("RHS rows per epoch", g(a, "rows_per_epoch", "{:.4g}"), g(b, "rows_per_epoch", "{:.4g}"), g(c, "rows_per_epoch", "{:.4g}")),
+        ("FLOPs per RHS row", flops_row(a), flops_row(b), flops_row(c)),
+        ("GFLOP per epoch (est.)", g(a, "flops_per_epoch", "{:.3g}", 1e-9), g(b, "flops_per_epoch", "{:.3g}", 1e-9),
+         g(c, "flops_per_epoch", "{:.3g}", 1e-9)),
+        ("GFLOP/s achieved in the train step", _rate(a), _rate(b), _rate(c)),
+        ("GFLOP one-off, before epoch 1 (est.)", "-" if not a else "0", g(b, "setup_flops", "{:.3g}", 1e-9), "-" if not c else "0"),
+        ("one-off compilation [s]", "-", "-", g(c, "compile_s")),
+        ("val.rmse at stop", g(a, "val_rmse_at_stop", "{:.4g}"), g(b, "val_rmse_at_stop", "{:.4g}"), g(c, "val_rmse_at_stop", "{:.4g}")),
+        ("best val.rmse of the run", g(a, "best_val_rmse", "{:.4g}"), g(b, "best_val_rmse", "{:.4g}"), g(c, "best_val_rmse", "{:.4g}")),
+        ("peak RSS [MiB]", g(a, "peak_rss_mib", "{:.0f}"), g(b, "peak_rss_mib", "{:.0f}"), g(c, "peak_rss_mib", "{:.0f}")),
+        ("peak RSS after loading only [MiB]", g(a, "rss_after_load_mib", "{:.0f}"), g(b, "rss_after_load_mib", "{:.0f}"),
+         g(c, "rss_after_load_mib", "{:.0f}")),
+        ("run statuses", ",".join(a.get("statuses", [])) or "-", ",".join(b.get("statuses", [])) or "-",
+         ",".join(c.get("statuses", [])) or "-"),
     ]
+    if not c:
+        rows = [r[:3] for r in rows]
     lines += _rows(rows)
     lines.append(f"  {'ratio b/a (time to target)':<38}{_ratio_text(t.get('ratio'))}")
+    if c:
+        lines.append(f"  {'ratio b/c (time to target)':<38}{_ratio_text(t.get('ratio_peer'))}")
+        per = b.get("train_s_per_epoch", math.nan) / c.get("train_s_per_epoch", math.nan)
+        lines.append(f"  {'ratio b/c (train step per epoch)':<38}{_num(per, '{:.3g}')}")
     return lines
 
 
-def _sweep_lines(s: dict[str, Any]) -> list[str]:
-    extra = " ".join(s.get("extra", [])) or "defaults"
-    rows = [
-        ("wall [s]", f"{s['wall_s']:.1f}", ""),
-        ("complete / pruned / failed", f"{s['complete']} / {s['pruned']} / {s['failed']}", ""),
-        ("fully trained per hour", _num(s.get("complete_per_hour"), "{:.1f}"), f"(all verdicts {_num(s.get('trials_per_hour'), '{:.1f}')}/h)"),
-        ("mean complete trial [s]", _num(s.get("mean_complete_trial_s"), "{:.1f}"), ""),
-        ("best val.rmse", _num(s.get("best_val_rmse"), "{:.4g}"), ""),
-    ]
-    out = ["", f"sweep throughput: physmend sweep, {s['n_trials']} trials, {s['workers']} worker(s) "
-               f"({s['processes']} process(es)), overrides: {extra}", *_rows(rows)]
-    if any(c != 0 for c in s.get("exit_codes", [])):
-        out.append(f"  exit codes {s['exit_codes']}; log tail:\n{s.get('log_tail', '')}")
-    return out
+def _rate(s: dict[str, Any]) -> str:
+    """The FLOP estimate of one epoch over its measured train step (GFLOP/s): how close the step is
+    to arithmetic-bound (one core of this machine does tens of GFLOP/s in float64 matmuls)."""
+    if not s:
+        return "-"
+    step, flops = s.get("train_s_per_epoch", math.nan), s.get("flops_per_epoch", math.nan)
+    return _num(flops * 1e-9 / step if step and step > 0 else math.nan, "{:.3g}")

@@ -10,6 +10,7 @@ subprocess (``--one baseline|physmend``) so that its peak memory is its own.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import math
 import os
@@ -25,7 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import DEFAULT_EVAL_EVERY, ROOT, Target, load, machine, peak_rss_mib  # noqa: E402
 from _table import summarise, ratio, table  # noqa: E402
 
-METHODS = ("baseline", "physmend")
+METHODS = ("baseline", "physmend", "jax")
+PEER_PACKAGES = ("jax", "diffrax", "optax")
 PARTS = ("ttacc", "sweep", "cli")
 QUICK = {"repeats": 1, "cap": 60.0, "sweep_trials": 2, "sweep_epochs": 20}
 
@@ -40,7 +42,8 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--cap", type=float, default=900.0, help="wall-clock cap per time-to-accuracy run (s)")
     p.add_argument("--eval-every", type=int, default=DEFAULT_EVAL_EVERY, help="epochs between evaluations (both methods)")
     p.add_argument("--seed", type=int, default=0, help="seed of repeat 0; repeat r uses seed + r (both methods)")
-    p.add_argument("--methods", default=",".join(METHODS), help="comma-separated subset of baseline,physmend")
+    p.add_argument("--methods", default=",".join(METHODS),
+                   help="comma-separated subset of baseline,physmend,jax (jax: pip install '.[bench]')")
     p.add_argument("--only", default=",".join(PARTS), help="comma-separated subset of ttacc,sweep,cli")
     p.add_argument("--override", action="append", default=[], metavar="KEY=VALUE",
                    help="physmend config override for both time-to-accuracy methods (repeatable)")
@@ -68,12 +71,13 @@ def parse(argv: list[str] | None = None) -> argparse.Namespace:
 def one(args: argparse.Namespace) -> None:
     """Run one method once and write its result JSON to ``args.result``."""
     import _baseline
+    import _jax
     import _trainer
 
     cfg, problem = load(args.override)
     target = Target(args.noise)
     rss_loaded = peak_rss_mib()
-    module = _baseline if args.one == "baseline" else _trainer
+    module = {"baseline": _baseline, "physmend": _trainer, "jax": _jax}[args.one]
     res = module.run(cfg, problem, target, cap_s=args.cap, eval_every=args.eval_every, seed=args.seed)
     res["peak_rss_mib"], res["rss_after_load_mib"], res["seed"] = peak_rss_mib(), rss_loaded, args.seed
     if args.one == "physmend":
@@ -92,7 +96,9 @@ def spawn(method: str, args: argparse.Namespace, noise: float, seed: int, count_
         cmd = [sys.executable, str(Path(__file__).resolve()), "--one", method, "--noise", repr(noise), "--seed", str(seed),
                "--cap", repr(args.cap), "--eval-every", str(args.eval_every), "--result", str(out)]
         cmd += [f"--override={o}" for o in args.override] + (["--count-flops"] if count_flops else [])
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+        from _jax import xla_flags
+
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "XLA_FLAGS": xla_flags(1)}
         t0 = time.perf_counter()
         try:
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.cap + 600)
@@ -122,6 +128,11 @@ def time_to_accuracy(args: argparse.Namespace, res: dict[str, Any]) -> None:
     target = Target(noise["pooled"])
     res.update(problem=problem_facts(problem), noise=noise, target_rmse=target.rmse)
     methods = [m for m in METHODS if m in args.methods.split(",")]
+    missing = [name for name in PEER_PACKAGES if importlib.util.find_spec(name) is None]
+    if "jax" in methods and missing:
+        print(f"[ttacc] (c) JAX + diffrax left out: {', '.join(missing)} not installed (pip install '.[bench]')",
+              file=sys.stderr, flush=True)
+        methods.remove("jax")
     t = res["ttacc"] = {"repeats": args.repeats, "cap_s": args.cap, "eval_every": args.eval_every,
                         "default_eval_every": int(cfg.train.eval_every),
                         "physmend_patience": int(with_eval_every(cfg, args.eval_every).train.patience),
@@ -141,8 +152,10 @@ def summarise_ttacc(t: dict[str, Any]) -> None:
     for m in METHODS:
         if m in t:
             t[m]["summary"] = summarise(t[m]["runs"])
-    if all(m in t for m in METHODS):
+    if "physmend" in t and "baseline" in t:
         t["ratio"] = ratio(t["physmend"]["summary"], t["baseline"]["summary"])
+    if "physmend" in t and "jax" in t:
+        t["ratio_peer"] = ratio(t["physmend"]["summary"], t["jax"]["summary"])
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -164,7 +164,7 @@ def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: 
     u = ref.states[::50, :2]  # (T', 2 experiments, n)
     x = ref.inputs[::50, :2]
     p = ref.batch.params[:2]
-    rows = stack._corrections(stack.net, 3, u.repeat(1, 3, 1), x.repeat(1, 3, 1), p.repeat(3, 1))
+    rows = stack._corrections(stack.net, 3, u.repeat(1, 3, 1), x.repeat(1, 3, 1), p.repeat(3, 1), stack._coef(p.repeat(3, 1)))
     for i, mem in enumerate(stack.members):
         stack.write_back(i)
         with torch.no_grad():

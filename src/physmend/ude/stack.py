@@ -155,18 +155,23 @@ class _Stack:
             p[:, :, self.est_idx] = values[:, None, :].to(p.dtype)
         return p.reshape(m * rows, -1)
 
-    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-        """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own network."""
+    def _coef(self, p: torch.Tensor) -> torch.Tensor | None:
+        """The corrected equations' ``a_i(p)`` ``(rows, k)`` (None when the network gives rates)."""
+        return None if self.template.coefficients is None else self.template.equation_coefficients(p)
+
+    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor,
+                     coef: torch.Tensor | None) -> torch.Tensor:
+        """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own
+        network; ``coef (m·R, k)``: the equations' ``a_i(p)`` (None: rates, nothing to divide by)."""
         z = (self.template.features(u, x, p) - self.mean) / self.std
         *lead, rows, n_feat = z.shape
         r = rows // m
-        coef = None if self.template.coefficients is None else self.template.equation_coefficients
         if not lead:
             out = net(z.reshape(m, r, n_feat)).reshape(rows, -1)
-            return out if coef is None else out / coef(p)
+            return out if coef is None else out / coef
         zz = z.reshape(*lead, m, r, n_feat).movedim(-3, 0).reshape(m, -1, n_feat)
         out = net(zz).reshape(m, *lead, r, -1).movedim(0, -3).reshape(*lead, rows, -1)
-        return out if coef is None else out / coef(p)
+        return out if coef is None else out / coef
 
     def _rhs(self, net: _Net, m: int, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``f(u, x) -> du/dt`` over stacked rows, structured as :meth:`HybridModel.rhs`."""
@@ -175,12 +180,13 @@ class _Stack:
         n = len(self.problem.compiled.state_names)
         if not idx:
             return physics
+        coef = self._coef(p)  # once per solve, not once per evaluation
         if len(idx) == n and idx == list(range(n)):
-            return lambda u, x: physics(u, x) + self._corrections(net, m, u, x, p)
+            return lambda u, x: physics(u, x) + self._corrections(net, m, u, x, p, coef)
         index = torch.tensor(idx, dtype=torch.long)
 
         def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-            corr = self._corrections(net, m, u, x, p)
+            corr = self._corrections(net, m, u, x, p, coef)
             du = physics(u, x)
             if du.shape[:-1] != corr.shape[:-1]:
                 lead = torch.broadcast_shapes(du.shape[:-1], corr.shape[:-1])
@@ -212,7 +218,7 @@ class _Stack:
             gap = (last[:, self.has_next] - u0s[:, plan.next_of[self.has_next]]) / self.state_scale
             loss = loss + self.cont_w * gap.pow(2).mean(dim=(1, 2))
         if self.eq_coef is not None:
-            corr = self._corrections(self.net, m, traj, plan.x_half[0::2], p)  # (K+1, M·S, k)
+            corr = self._corrections(self.net, m, traj, plan.x_half[0::2], p, self._coef(p))  # (K+1, M·S, k)
             corr = corr.reshape(corr.shape[0], m, s, -1) * self.eq_coef[None, None]
             term = (corr.pow(2).mean(dim=(0, 2)).add(1e-30).sqrt() / self.eq_ref).sum(-1)
             loss = loss + torch.where(self.sparsity > 0, self.sparsity * term, torch.zeros_like(term))
@@ -257,7 +263,7 @@ class _Stack:
         p_exp = self.ref.batch.params[forced.exp_index]
         n_fit = 2 * len(self.net.weights) + (1 if self.est_idx else 0)  # the network, then the estimates
         fit_models(self.problem, forced, self.template.corrected_idx, models=m,
-                   corrections=lambda u, x, p: self._corrections(self.net, m, u, x, p),
+                   corrections=lambda u, x, p: self._corrections(self.net, m, u, x, p, self._coef(p)),
                    parameters=lambda: self._parameters_for(p_exp, self.est_raw, m),
                    typical=torch.stack([mem.hybrid.rate_scale * mem.hybrid.out_mask for mem in self.members]), params=[p for p, *_ in self.params[:n_fit]],
                    masks=[mk for _, mk, *_ in self.params[:n_fit]], iterations=iterations, window=window)

@@ -34,6 +34,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "s_per_epoch": _median([r.get("s_per_epoch", float("nan")) for r in runs]),
         "train_s_per_epoch": _median([r.get("train_s_per_epoch", float("nan")) for r in runs]),
         "eval_s": _median([r.get("eval_s", float("nan")) for r in runs]),
+        "compile_s": _median([r.get("compile_s", float("nan")) for r in runs]),
         "val_rmse_at_stop": _median([r.get("final_val_rmse", float("nan")) for r in runs]),
         "best_val_rmse": _median([min((h["val.rmse"] for h in r.get("history", [])), default=float("nan")) for r in runs]),
         "peak_rss_mib": _median([r.get("peak_rss_mib", float("nan")) for r in runs]),

@@ -149,6 +149,8 @@ class HybridModel(nn.Module):
         self.observed_idx = [compiled.observed_names.index(n) for n in spec.in_observed]
         self.input_idx = [compiled.input_names.index(n) for n in spec.in_inputs]
         self.param_idx = [compiled.parameter_names.index(n) for n in spec.in_parameters]
+        self._all_states = self.state_idx == list(range(len(names)))
+        self._all_inputs = self.input_idx == list(range(len(compiled.input_names)))
         self.register_buffer("mean", torch.tensor(spec.mean, dtype=dtype))
         self.register_buffer("std", torch.tensor(spec.std, dtype=dtype))
         self.register_buffer("out_scale", torch.tensor(spec.out_scale, dtype=dtype))
@@ -192,12 +194,14 @@ class HybridModel(nn.Module):
     # -- the network ----------------------------------------------------------------------------
     def features(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
         """Raw (unnormalised) network inputs ``(..., B, n_features)`` in physical units."""
-        parts = [u[..., self.state_idx]]
+        # every state (or input) in model order is the tensor itself: no gather (one op less per evaluation)
+        parts = [u if self._all_states else u[..., self.state_idx]]
         lead = u.shape[:-1]
         if self.observed_idx:
             parts.append(self.compiled.observed(u, x, p)[..., self.observed_idx])
         if self.input_idx:
-            parts.append(x[..., self.input_idx].expand(*lead, len(self.input_idx)))
+            xs = x if self._all_inputs else x[..., self.input_idx]
+            parts.append(xs if xs.shape[:-1] == lead else xs.expand(*lead, len(self.input_idx)))
         if self.param_idx:
             parts.append(p[..., self.param_idx].expand(*lead, len(self.param_idx)))
         return torch.cat(parts, dim=-1)

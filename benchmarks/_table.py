@@ -92,7 +92,7 @@ def _ratio_text(r: dict[str, Any] | None) -> str:
 
 def _rows(rows: list[tuple[str, ...]], first: int = 38, width: int = 22) -> list[str]:
     """Aligned rows: a label ``first`` characters wide, then columns ``width`` wide."""
-    return [(f"  {r[0]:<{first}}" + "".join(f"{c:<{width}}" for c in r[1:])).rstrip() for r in rows]
+    return [(f"  {r[0]:<{first}}" + "".join(f"{c:<{width - 1}} " for c in r[1:])).rstrip() for r in rows]
 
 
 def table(res: dict[str, Any]) -> str:

@@ -39,6 +39,9 @@ ABOVE_ZERO = math.ulp(0.0)
 #: settings whose default ``auto`` has a list of names, not a number, as its alternative
 AUTO_OR_LIST = ("symbolic.parameters", "ude.inputs.parameters")
 
+#: switches whose alternative is a list of names (checked against the model where it is used)
+SWITCH_OR_LIST = ("ude.inputs.states", "ude.inputs.inputs")
+
 #: ``key: (low, high)``, both inclusive, where the default's kind says too little: counts that must
 #: be at least one, fractions, weights that may be zero
 RANGES: dict[str, tuple[float, float]] = {
@@ -105,6 +108,8 @@ def check_value(key: str, value: Any, default: Any) -> Any:
         return value
     if key in AUTO_OR_LIST:
         return value  # 'auto' or a list of names: checked against the model where it is used
+    if key in SWITCH_OR_LIST and not isinstance(value, bool):
+        raise SettingError(f"{key} must be true, false or a list of names/patterns, but got {value!r}")
     if isinstance(default, str) and default == "auto":
         if value == "auto":
             return value

@@ -54,3 +54,14 @@ def test_state_and_input_selection_takes_switches_or_patterns() -> None:
         _selected(["cargo.T"], names, "ude.inputs.states")
     with pytest.raises(UDEConfigError, match="ude.inputs.inputs must be true, false or a list"):
         _selected("some", names, "ude.inputs.inputs")
+
+
+def test_a_word_for_the_state_or_input_selection_is_refused_when_composed() -> None:
+    import pytest
+
+    from physmend.config import ConfigError, compose
+
+    with pytest.raises(ConfigError, match="ude.inputs.states must be true, false or a list of names/patterns, but got 'some'"):
+        compose(["ude.inputs.states=some"])
+    cfg = compose(["ude.inputs.states=[zone1.air.T]", "ude.inputs.inputs=false"])
+    assert list(cfg.ude.inputs.states) == ["zone1.air.T"] and cfg.ude.inputs.inputs is False

@@ -206,15 +206,22 @@ class HybridModel(nn.Module):
             parts.append(p[..., self.param_idx].expand(*lead, len(self.param_idx)))
         return torch.cat(parts, dim=-1)
 
-    def corrections(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor,
-                    coef: torch.Tensor | None = None) -> torch.Tensor:
-        """Network corrections ``(..., B, n_corrected)`` in state units per second; ``coef (B, k)``:
-        :meth:`equation_coefficients` of ``p`` when the caller has them (a solve computes them once)."""
-        z = (self.features(u, x, p) - self.mean) / self.std
-        out = self.net(z) * (self.out_scale * self.out_mask)
-        if self.coefficients is None:
-            return out
-        return out / (self.equation_coefficients(p) if coef is None else coef)
+    def corrections(self, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Network corrections ``(..., B, n_corrected)`` in state units per second."""
+        return self.corrector(p)(u, x)
+
+    def corrector(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """:meth:`corrections` for fixed parameters ``p (B, n_params)``: what depends on ``p`` and
+        the output mask only (``a_i(p)``, the output gains) is computed once here, not at every
+        evaluation of a solve — the same numbers either way."""
+        gain = self.out_scale * self.out_mask
+        coef = self.equation_coefficients(p) if self.coefficients is not None else None
+
+        def corr(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+            out = self.net((self.features(u, x, p) - self.mean) / self.std) * gain
+            return out if coef is None else out / coef
+
+        return corr
 
     def equation_coefficients(self, p: torch.Tensor) -> torch.Tensor:
         """``a_i(p)`` of the corrected equations ``(..., k)`` for ``p (..., n_params)``, with every
@@ -243,15 +250,14 @@ class HybridModel(nn.Module):
         n = len(self.compiled.state_names)
         if not idx:  # nothing corrected: the physics alone (e.g. re-fitting a formula's constants)
             return physics
-        # a_i(p) once per solve, not once per evaluation (it depends on the parameters only)
-        coef = self.equation_coefficients(p) if self.coefficients is not None else None
+        corrections = self.corrector(p)  # a_i(p) and the gains once per solve
         if len(idx) == n and idx == list(range(n)):
-            return lambda u, x: physics(u, x) + self.corrections(u, x, p, coef)
+            return lambda u, x: physics(u, x) + corrections(u, x)
 
         index = torch.tensor(idx, dtype=torch.long, device=p.device)
 
         def f(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-            corr = self.corrections(u, x, p, coef)
+            corr = corrections(u, x)
             du = physics(u, x)
             if du.shape[:-1] != corr.shape[:-1]:
                 lead = torch.broadcast_shapes(du.shape[:-1], corr.shape[:-1])

@@ -97,16 +97,17 @@ def rk4_solver() -> Any:
     return RK4()
 
 
-ACTIVATIONS = {"tanh": "tanh", "relu": "relu", "gelu": "gelu", "softplus": "softplus", "silu": "silu",
-               "sigmoid": "sigmoid", "elu": "elu"}
-
-
 def _activation(name: str) -> Any:
+    """The JAX function of physmend's ``ude.activation`` ``name`` (torch's defaults)."""
     import jax
 
     if name == "gelu":
         return lambda v: jax.nn.gelu(v, approximate=False)  # torch's nn.GELU default: the exact erf form
-    return getattr(jax.nn, ACTIVATIONS[name]) if name != "tanh" else jax.numpy.tanh
+    if name == "tanh":
+        return jax.numpy.tanh
+    if name in ("relu", "softplus", "silu", "sigmoid", "elu"):
+        return getattr(jax.nn, name)
+    raise ValueError(f"ude.activation {name!r} has no JAX counterpart in the peer")
 
 
 def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
@@ -162,8 +163,9 @@ def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
     }
 
 
-def build_step(s: dict[str, Any]) -> tuple[Any, Any, Any]:
-    """``(params, opt_state, step)``: the jitted ``step(params, opt_state) -> (params, opt_state, loss)``."""
+def build_step(s: dict[str, Any]) -> tuple[Any, Any, Any, Any]:
+    """``(params, opt_state, step, segments)``: the jitted ``step(params, opt_state) -> (params,
+    opt_state, loss)`` and the jitted ``segments(params) -> (S, K+1, n)`` states of every segment."""
     import diffrax
     import jax
     import jax.numpy as jnp

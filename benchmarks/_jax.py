@@ -2,10 +2,10 @@
 
 The same problem as physmend's trainer, piece by piece:
 
-* **physics**: the model's compiled right-hand side exported as its affine form
-  ``du/dt = A_s u + B_s x + c_s`` for each segment ``s`` (its experiment's parameters as declared),
-  outputs ``y = C_s u + D_s x + e_s``; the export is checked against the compiled model at
-  states and inputs of the data (a model that is not affine is refused with a clear error);
+* **physics**: the compiled model's own affine split ``du/dt = A_s u + B_s x + c_s`` for each
+  segment ``s`` (its experiment's parameters as declared; a model with non-affine rows is refused
+  with a clear error), outputs ``y = C_s u + D_s x + e_s`` exported by probing and checked against
+  the compiled model at states and inputs of the data;
 * **network**: physmend's shape, activation, input normalisation, output scale and equation units
   (``÷ a_i(p)``), and its initial weights (copied from ``HybridModel`` built with the same seed);
 * **data and segments**: physmend's training plan (``plan_shooting``: segments, step, inputs at
@@ -51,7 +51,7 @@ def xla_flags(threads: int) -> str:
 
 
 def affine_form(fn: Any, u: Any, x: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(A (S, r, n), B (S, r, m), c (S, r))`` with ``fn(u, x) = A u + B x + c`` for ``u (S, n)``,
+    """``(A (S, r, n), B (S, r, m), c (S, r))`` with ``fn(u, x) = A u + B x + c`` (the outputs) for ``u (S, n)``,
     ``x (S, m)`` (one row per segment); raises :class:`NotAffine` when ``fn`` differs from it at
     ``(u, x)`` (and at its double) by more than 1e-8 relative."""
     import torch
@@ -114,6 +114,7 @@ def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
     """Everything the peer needs, from physmend's own pieces (torch, untimed by the peer's epochs)."""
     import torch
 
+    from physmend.modeling.compile import BoundRhs
     from physmend.ude.hybrid import HybridModel
     from physmend.ude.reference import _train_mask, reference
     from physmend.ude.shooting import _initial_segments, _output_spread, pinned_starts, plan_shooting
@@ -133,8 +134,10 @@ def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
     p = ref.batch.params[plan.exp_index]  # (S, P) as declared
     cm = problem.compiled
     physics = cm.bind(p)
+    if not isinstance(physics, BoundRhs) or physics.split.rest is not None:
+        raise NotAffine("the model is not affine in its states and inputs: the JAX peer exports only affine models")
     x0 = plan.x_half[0]
-    A, B, c = affine_form(physics, seg0, x0)
+    A, B, c = (v.detach().numpy() for v in (physics.A, physics.B, physics.c))  # the compiled model's own split
     C, D, e = affine_form(lambda u, x: cm.outputs(u[None], x[None], p[None])[0], seg0, x0)
     coef = (hybrid.equation_coefficients(p) if hybrid.coefficients is not None
             else torch.ones(p.shape[0], len(spec.corrected), dtype=p.dtype))

@@ -23,3 +23,18 @@ def test_a_correction_is_labelled_in_its_equations_units(example: str, state: st
     cfg = compose([f"model={example}", f"data={example}"], user_config_dir=EXAMPLES / example / "conf")
     problem = load_problem(cfg)
     assert equation_unit(problem.model, state, problem.time_unit) == unit
+
+
+def test_the_label_is_the_unit_whose_dimension_the_equation_has() -> None:
+    """A heat balance whose alphabetically first variable is a temperature is still labelled in W."""
+    from physmend.modeling import Model
+
+    m = Model("room")
+    T = m.state("T", start=290.0, unit="K")
+    C = m.parameter("C", 1e5, unit="J/K")
+    G = m.parameter("G", 50.0, unit="W/K")
+    Ta = m.input("Ta", unit="degC")
+    q = m.input("q", unit="kW")
+    m.equation(C * m.der(T), G * (Ta - T) + 1000 * q)
+    m.output("T", T, unit="K")
+    assert equation_unit(m.simplify(), "T") == "kW"

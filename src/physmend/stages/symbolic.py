@@ -46,18 +46,29 @@ STAGE = "symbolic"
 
 def equation_unit(model: Any, state: str, time_unit: str = "s") -> str:
     """The unit of the terms of ``state``'s equation: for ``der(x) = …`` (coefficient 1) the rate
-    ``unit(x)/time_unit``; otherwise the unit of a variable of its right-hand side (a heat flow in a
-    heat balance ``C·der(T) = Q_flow + …``)."""
+    ``unit(x)/time_unit``; otherwise the unit of a variable of its right-hand side whose dimension is
+    the right-hand side's (a heat flow in a heat balance ``C·der(T) = P − UA·(T − T_room)``, not a
+    temperature), the first such by name; the first variable's unit when the units cannot tell."""
     if model.der_coefficient.get(state, 1) == 1 and model.units.get(state):
         return f"{model.units[state]}/{time_unit}"
     eq = model.equations.get(state)
     if eq is None:
         return ""
-    for sym in sorted(eq.rhs.free_symbols, key=lambda s: s.name):
-        unit = model.units.get(sym.name, "")
-        if unit and sym.name not in model.parameter_names:
-            return unit
-    return ""
+    from physmend.modeling.units import ANY, UnitMismatch, dimension, formula_dimension, same
+
+    labels = [model.units.get(sym.name, "") for sym in sorted(eq.rhs.free_symbols, key=lambda s: s.name)
+              if sym.name not in model.parameter_names]
+    labels = [u for u in labels if u]
+    try:  # the right-hand side's dimension, from every declared unit (parameters' included)
+        want = formula_dimension(eq.rhs, model.units)
+    except UnitMismatch:
+        want = ANY
+    if want is not ANY:
+        for unit in labels:
+            d = dimension(unit)
+            if d is not None and same(d, want):  # type: ignore[arg-type]
+                return unit
+    return labels[0] if labels else ""
 
 
 def name_constants(expr: sp.Expr, prefix: str = "c") -> tuple[sp.Expr, dict[str, float]]:
@@ -251,7 +262,12 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     operators = OmegaConf.to_container(cfg.operators) if "operators" in cfg else None  # checked when composed
     for state in kept:
         front = fit(X, y_all[state], x_names, backend=str(sc.backend), target=state, units=units,
-                    options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)), operators=operators)
+                    options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)), operators=operators,
+                    target_unit=equation_unit(problem.model, state, getattr(problem, "time_unit", "s")),
+                    check_units=bool(sc.get("units", True)))
+        if front.info.get("unit_rejected"):
+            print(f"{state}: {front.info['unit_rejected']} formula(s) left out, their units cannot be the equation's "
+                  f"(e.g. {front.info['unit_rejected_examples'][0]})")
         if select == "recorded":
             extra = catalogue_candidates(x_names, units, columns, y_all[state], operators=operators)
             front.candidates = sorted(front.candidates + extra, key=lambda c: (c.complexity, c.mse))

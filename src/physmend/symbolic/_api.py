@@ -12,6 +12,7 @@ import sympy
 
 from physmend.symbolic._errors import BackendUnavailable, SymbolicError
 from physmend.modeling.evaluate import display, evaluate, mse_r2
+from physmend.modeling.units import mismatch
 from physmend.symbolic._front import Candidate, ParetoFront, pareto_filter
 
 #: back end name -> module implementing it (imported lazily; the modules import nothing heavy at import time).
@@ -105,6 +106,8 @@ def fit(
     options: dict | None = None,
     seed: int = 0,
     operators: Mapping[str, int] | None = None,
+    target_unit: str | None = None,
+    check_units: bool = True,
 ) -> ParetoFront:
     """Fit formulas ``y ≈ g(X)`` and return their Pareto front (accuracy vs complexity).
 
@@ -124,13 +127,19 @@ def fit(
             ``operators`` config group): the operators every back end searches with (where
             ``options`` do not name the back end's own setting) and the one rule that prices every
             candidate's complexity. None: each back end's own defaults and size measure.
+        target_unit: the unit ``y`` is in (the corrected equation's, e.g. ``"W"``); empty or None:
+            not checked against.
+        check_units: drop every formula whose units cannot be consistent — within itself (``T + Q``
+            with ``T`` in K and ``Q`` in W, ``exp(T)``) or with ``target_unit`` — by the declared
+            ``units`` (:func:`physmend.modeling.units.mismatch`: a fitted constant may carry any
+            unit, an unknown unit is never a reason). ``info["unit_rejected"]`` counts them.
 
     Returns:
         The non-dominated formulas, complexity ascending; choose one with :func:`choose`.
 
     Raises:
         SymbolicError: unknown back end or option; bad input (shapes, non-finite values, names,
-            fewer than 10 points); no formula could be evaluated.
+            fewer than 10 points); no formula could be evaluated; every formula's units are wrong.
         BackendUnavailable: the back end cannot run here (raised at once, nothing is downloaded).
     """
     module = _backend(backend)
@@ -161,11 +170,17 @@ def fit(
 
     columns = {name: X[:, j] for j, name in enumerate(names)}
     candidates: list[Candidate] = []
+    rejected: list[str] = []
     for expr, complexity, terms, text in raw:
         if isinstance(expr, str):  # a back end's text: the restricted parser, never sympify
             from physmend.modeling.safe_parse import parse_safe
 
             expr = parse_safe(expr, where=f"{backend} formula", new_symbols=True)
+        if check_units:
+            why = mismatch(expr, units, target_unit)
+            if why is not None:
+                rejected.append(f"{display(expr)}: {why}")
+                continue
         y_hat = evaluate(expr, columns, n=n)
         if not np.isfinite(y_hat).all():
             continue
@@ -178,6 +193,11 @@ def fit(
     front = pareto_filter(candidates)
     if not raw:
         raise SymbolicError(f"back end {backend!r} returned no formula for {target!r}")
+    if rejected and not candidates:
+        raise SymbolicError(
+            f"every formula back end {backend!r} returned for {target!r} has units that cannot be "
+            f"{target_unit or 'consistent'} with the declared units {units} (first: {rejected[0]}); check the units the "
+            "model declares, or set symbolic.units=false to skip this check")
     if not front:
         raise SymbolicError(
             f"back end {backend!r} returned {len(raw)} formulas for {target!r}, but none gives finite values on all "
@@ -189,6 +209,8 @@ def fit(
         "n_points_search": int(Xs.shape[0]),
         "seed": int(seed),
         "n_raw_candidates": len(raw),
+        "unit_rejected": len(rejected),
+        "unit_rejected_examples": rejected[:3],
         **_jsonable(details),
     }
     return ParetoFront(backend, target, names, front, units=units, n_points=n, info=info)

@@ -29,7 +29,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "train.warm_start": ("auto", "none"),
     "train.segment_starts": ("chained", "forced"),
     "ude.units": ("equation", "state"),
-    "export.format": ("all", "latex", "sympy", "python"),
+    "export.format": ("all", "latex", "sympy", "python", "petab"),
     "simulate.dtype": ("float64", "float32"),
 }
 

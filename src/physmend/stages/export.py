@@ -3,8 +3,9 @@
 Builds the model the current configuration names (never one from the store), applies the
 proposal's corrections (constants at their re-fitted values) and writes, into
 ``export.output_dir``, one file per ``export.format``: LaTeX (``.tex``), sympy expressions
-(``.sympy.json``, ``srepr`` text) and a plain Python module (``.py``, a right-hand side for
-``scipy.integrate.solve_ivp``). An existing file is never overwritten; the run is not changed.
+(``.sympy.json``, ``srepr`` text), a plain Python module (``.py``, a right-hand side for
+``scipy.integrate.solve_ivp``) and a PEtab problem (``.petab/``: SBML model and tables, see
+:mod:`physmend.modeling.petab`). An existing file is never overwritten; the run is not changed.
 """
 
 from __future__ import annotations
@@ -17,9 +18,17 @@ STAGE = "export"
 
 
 def _formats(value: Any) -> list[str]:
+    """The formats ``export.format`` names: ``all`` is every one this machine can write (PEtab
+    needs python-libsbml: left out with one line where it is missing)."""
     from physmend.modeling.export import FORMATS
+    from physmend.modeling.petab import unavailable_reason
 
-    return list(FORMATS) if str(value) == "all" else [str(value)]
+    if str(value) != "all":
+        return [str(value)]
+    reason = unavailable_reason()
+    if reason is not None:
+        print(f"petab left out: {reason}")
+    return [*FORMATS, *([] if reason else ["petab"])]
 
 
 def run(cfg: Any, source_run_id: str | None = None) -> str:
@@ -44,6 +53,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         raise TrackingError(f"proposal {run_id!r} did not finish (status {run_.info.status})")
     out_dir = Path(str(cfg.export.output_dir)).expanduser()
     formats = _formats(cfg.export.format)
+    if "petab" in formats:
+        from physmend.modeling.petab import unavailable_reason
+
+        if unavailable_reason():
+            raise ModelError(str(unavailable_reason()))
     stored = read_stored_config(download_artifact(store, run_id, "config.yaml"), run_id, cfg)
     work = merged(stored, cfg, "export")
     corr_path = download_artifact(store, run_id, "corrections.yaml")
@@ -56,7 +70,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     sm = problem.model
     name = str(meta.get("model", sm.name))
     base = module_name(name, run_id)
-    targets = {f: out_dir / f"{base}{FORMATS[f]}" for f in formats}
+    targets = {f: out_dir / f"{base}{FORMATS.get(f, '.petab')}" for f in formats}  # petab: a folder of files
     there = [str(p) for p in targets.values() if p.exists()]
     if there:
         raise ModelError(f"export.output_dir: {there[0]} exists; physmend never overwrites a file (move it or "
@@ -72,24 +86,42 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         initial = {**dict(zip(sm.state_names, start)), **{n: float(v) for n, v in (e.initial or {}).items()}}
         experiments[e.id] = {"role": e.role, "initial": initial,
                              "parameters": {n: float(v) for n, v, d in zip(sm.parameter_names, e.parameters, declared) if v != d}}
+    def petab() -> dict[str, str]:
+        from physmend.modeling.petab import petab_files
+
+        records = [{**experiments[e.id], "id": e.id, "obs_time": e.obs_time, "obs": e.obs,
+                    "inputs": {n: (c.time, c.values) for n, c in e.inputs.items()}} for e in problem.experiments]
+        estimated = {v.name: tuple(map(float, v.bounds)) for v in sm.parameters if v.uncertain and v.bounds}
+        estimated |= {n: (-10 * abs(v) or -1.0, 10 * abs(v) or 1.0) for n, v in constants.items()}
+        return petab_files(sm, records, estimated)
+
     texts = {"latex": lambda: latex_text(sm, corrected, constants, info),
              "sympy": lambda: sympy_json(sm, corrected, info),
-             "python": lambda: python_module(sm, experiments, info)}
+             "python": lambda: python_module(sm, experiments, info),
+             "petab": petab}
     written = {f: texts[f]() for f in formats}  # every text first: a failing writer leaves no file behind
     made: list[Path] = []
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         for f, text in written.items():
-            with open(targets[f], "x", encoding="utf-8") as fh:  # "x": never overwrite, even in a race
+            files = {targets[f]: text} if isinstance(text, str) else {targets[f] / n: t for n, t in text.items()}
+            if not isinstance(text, str):
+                targets[f].mkdir()  # fails if it exists: never overwrite
                 made.append(targets[f])
-                fh.write(text)
+            for path, body in files.items():
+                with open(path, "x", encoding="utf-8") as fh:  # "x": never overwrite, even in a race
+                    made.append(path)
+                    fh.write(body)
     except OSError as exc:  # a folder that cannot be made or written: one line, none of this call's files left
-        for path in made:
-            path.unlink(missing_ok=True)
+        for path in reversed(made):
+            path.rmdir() if path.is_dir() else path.unlink(missing_ok=True)
         raise ModelError(f"export.output_dir: cannot write {exc.filename or out_dir}: {exc.strerror or exc}") from None
     print(f"# physmend export — proposal {run_id}, model {name}: {', '.join(corrected)} corrected")
     for f in formats:
         print(f"  {f:7s} {targets[f]}")
+    if "petab" in formats:
+        print(f"PEtab: {targets['petab'] / 'problem.yaml'} (e.g. amici.petab or PEtab.jl; a recorded input is a "
+              "piecewise-linear SBML rule per experiment, picked by its condition)")
     if "python" in formats:
         print(f"use: import {base}; scipy.integrate.solve_ivp(lambda t, x: {base}.rhs(t, x, inputs(t)), "
               f"(t0, t1), {base}.initial_state())")

@@ -178,5 +178,5 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     where = redact(str(store.client.get_run(run_id).info.artifact_uri))
     print(f"propose run: {run_id}\nreport: {where}/report.html  (and report.md; in the MLflow UI: physmend ui, this run, "
           f"Artifacts)\nnext: physmend accept {run_id}   (or: physmend reject {run_id} decide.reason='…'; "
-          f"physmend export {run_id} for LaTeX, sympy, Python)")
+          f"physmend export {run_id} for LaTeX, sympy, Python, PEtab)")
     return run_id

@@ -6,6 +6,7 @@ and each prints its finding. The proposal is left for the engineer to accept or 
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -44,24 +45,38 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
         if f"sweep.{key}" not in given:
             cfg.sweep[key] = chosen[key]
     ids: list[tuple[str, str]] = []
+    seconds: list[tuple[str, float]] = []
     banner = "\n" + "=" * 78 + "\n== physmend discover: {} \n" + "=" * 78
-    print(banner.format("1/6 diagnose"))
+    clock = time.perf_counter()
+
+    def stage(number: int, name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        if number > 1:
+            seconds.append((ids[-1][0], now - clock))
+        clock = now
+        print(banner.format(f"{number}/6 {name}"))
+
+    stage(1, "diagnose")
     ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
-    print(banner.format("2/6 sweep"))
+    stage(2, "sweep")
     sweep_overrides = None
     if overrides is not None:
         sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
                                          for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
     sweep_id = sweep.run(cfg, ids[-1][1], overrides=sweep_overrides, config_dir=config_dir, given_wins=True)
     ids.append(("sweep", sweep_id))
-    print(banner.format("3/6 mask"))
+    stage(3, "mask")
     ids.append(("mask", mask.run(cfg, None)))  # the sweep's selection
-    print(banner.format("4/6 sensitivity"))
+    stage(4, "sensitivity")
     ids.append(("sensitivity", sensitivity.run(cfg, ids[-1][1])))
-    print(banner.format("5/6 symbolic"))
+    stage(5, "symbolic")
     ids.append(("symbolic", symbolic.run(cfg, ids[-1][1])))
-    print(banner.format("6/6 propose"))
+    stage(6, "propose")
     ids.append(("propose", propose.run(cfg, ids[-1][1])))
+    seconds.append(("propose", time.perf_counter() - clock))
+    print("\nwall time per stage: " + ", ".join(f"{name} {s:.0f} s" for name, s in seconds)
+          + f" (total {sum(s for _, s in seconds):.0f} s)")
     print("\nrun IDs: " + ", ".join(f"{s} {r}" for s, r in ids))
     print(f"accept the proposal: physmend accept {ids[-1][1]}   reject it: physmend reject {ids[-1][1]}")
     return ids[-1][1]

@@ -107,6 +107,24 @@ def test_modulated_conductance(samples):
     assert top.id == "modulated_conductance" and top.variables["u"] == FLOW and top.r2 > 0.999
 
 
+@pytest.mark.parametrize("expr, mechanism, k", [
+    (-40.0 * U / (0.05 + U), "saturable_rate", 0.05),            # Michaelis-Menten: the scale fitted
+    (3.0 * sympy.Min(U, 0.3), "saturation", 0.3),               # a limit inside the range
+    (0.8 * sympy.Max(U - 0.2, 0), "overflow", 0.2),              # acts above a threshold
+    (-0.3 * U * sympy.Abs(U), "quadratic_drag", None),
+    (5.0 * U**3, "cubic", None),
+    (1.5 * U * sympy.Abs(U) ** 0.7, "power_law", 1.7),          # the exponent fitted
+    (3.0 * sympy.Min(A, B), "limited_by_smaller", None),
+    (0.4 * sympy.Max(A - B, 0), "one_way_exchange", None),
+], ids=["michaelis-menten", "saturation", "overflow", "drag", "cubic", "power", "min-of-two", "one-way"])
+def test_each_form_with_its_constants_is_named(expr, mechanism, k, samples):
+    top = classify(expr, samples, UNITS)[0]
+    assert top.id == mechanism and top.r2 > 0.9999, (top.id, top.r2)
+    if k is not None:
+        assert top.k == pytest.approx(k, rel=1e-3)
+        assert f"{k:.4g}" in top.formula
+
+
 def test_different_units_are_never_paired(samples):
     units_by_var = UNITS
     expr = 0.7 * (A - P)  # kelvin minus pascal: no physical difference
@@ -146,8 +164,11 @@ def test_custom_catalogue_is_data(tmp_path, samples):
         ("  - id: x\n    name: n\n    template: c*a\n    explanation: e\n    colour: red\n", "unknown ['colour']"),
         ("  - id: x\n    name: n\n    template: c*a\n    explanation: e\n  - id: x\n    name: m\n    template: c\n    explanation: f\n", "ids must be unique, but entries 0 and 1 are both 'x'"),
         ("  - id: x\n    name: n\n    template: 'c*(a'\n    explanation: e\n", "template must be a sympy expression"),
+        ("  - id: x\n    name: n\n    template: c*Min(a, k)\n    k: level\n    explanation: e\n", "k must be one of ['threshold', 'scale', 'exponent']"),
+        ("  - id: x\n    name: n\n    template: c*Min(a, b)\n    k: threshold\n    explanation: e\n", "must hold the constant 'k' and exactly one placeholder"),
     ],
-    ids=["missing-key", "not-linear-in-c", "no-c", "bad-field", "bad-unit-group", "unknown-key", "duplicate", "unparsable"],
+    ids=["missing-key", "not-linear-in-c", "no-c", "bad-field", "bad-unit-group", "unknown-key", "duplicate", "unparsable",
+         "bad-k-grid", "k-missing"],
 )
 def test_bad_catalogue_names_file_and_entry(tmp_path, entry, message):
     path = tmp_path / "bad.yaml"

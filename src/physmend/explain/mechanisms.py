@@ -40,7 +40,12 @@ TEMPLATE_FUNCTIONS: dict[str, Any] = {
     "Min": sympy.Min,
 }
 COEFFICIENT = "c"
-_ENTRY_KEYS = {"id", "name", "template", "explanation", "same_unit", "units", "different_unit"}
+#: a template's second constant (a threshold, a scale or an exponent), searched on a grid (``k:`` of an entry)
+SECOND = "k"
+#: how the second constant is searched: over the quantiles of the variable (a threshold inside its
+#: range), over multiples of its typical size (a scale), or over exponents from 1/4 to 4
+K_GRIDS = ("threshold", "scale", "exponent")
+_ENTRY_KEYS = {"id", "name", "template", "explanation", "same_unit", "units", "different_unit", "k"}
 _REQUIRED = ("id", "name", "template", "explanation")
 _ID = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
@@ -75,6 +80,7 @@ class Mechanism:
     explanation: str
     complexity: int
     text: str = ""
+    k: str | None = None
 
     def admissible(self, assignment: Mapping[str, str], units: Mapping[str, str]) -> bool:
         """Whether mapping placeholders to variables (``assignment``) obeys the unit rules."""
@@ -108,6 +114,7 @@ class MechanismMatch:
         coefficient: fitted ``c`` (units of the formula divided by the template's).
         r2: R² of ``c * template`` against the formula on the samples.
         formula: the template with ``c`` and the variables filled in (``c`` to 4 significant digits).
+        k: the template's second constant (a threshold, scale or exponent), where it has one.
     """
 
     id: str
@@ -118,6 +125,7 @@ class MechanismMatch:
     r2: float
     formula: str = ""
     complexity: int = field(default=0, repr=False)
+    k: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict."""
@@ -180,7 +188,14 @@ def _entry(raw: Any, k: int, path: Path) -> Mechanism:
     shape = template.subs(c, 1)
     if sympy.expand(template - c * shape) != 0:
         raise CatalogueError(f"{where}: template must be {COEFFICIENT!r} times an expression of the placeholders, but got {raw['template']!r}")
-    placeholders = tuple(sorted(s.name for s in shape.free_symbols))
+    kind = raw.get("k")
+    if kind is not None and kind not in K_GRIDS:
+        raise CatalogueError(f"{where}: k must be one of {list(K_GRIDS)} (how the second constant {SECOND!r} is searched), "
+                             f"but got {kind!r}")
+    placeholders = tuple(sorted(s.name for s in shape.free_symbols if kind is None or s.name != SECOND))
+    if kind is not None and (sympy.Symbol(SECOND) not in shape.free_symbols or len(placeholders) != 1):
+        raise CatalogueError(f"{where}: a template with k: {kind} must hold the constant {SECOND!r} and exactly one "
+                             f"placeholder, but got {raw['template']!r}")
 
     units = raw.get("units") or {}
     if not isinstance(units, dict) or not all(isinstance(v, str) for v in units.values()):
@@ -207,7 +222,58 @@ def _entry(raw: Any, k: int, path: Path) -> Mechanism:
         explanation=raw["explanation"].strip(),
         complexity=int(sympy.count_ops(template)),
         text=" ".join(raw["template"].split()),
+        k=kind,
     )
+
+
+def k_grid(kind: str, values: np.ndarray) -> np.ndarray:
+    """The values tried for a template's second constant (:data:`K_GRIDS`) given the samples of its
+    variable ``values (n,)``: thresholds at the 10th…90th percentiles (the kink inside the data,
+    where it can be told from a straight line), scales from 1/100 to 100 times the typical size,
+    exponents 0.25…4 in steps of 0.05."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if kind == "threshold":
+        return np.unique(np.quantile(v, np.linspace(0.1, 0.9, 41))) if v.size else np.zeros(0)
+    if kind == "scale":
+        size = float(np.median(np.abs(v))) if v.size else 0.0
+        size = size if size > 0 else float(np.mean(np.abs(v))) if v.size else 0.0
+        return size * np.logspace(-2, 2, 81) if size > 0 else np.zeros(0)
+    return np.round(np.arange(0.25, 4.0 + 1e-9, 0.05), 10)
+
+
+def fit_with_k(m: Mechanism, f: Any, column: np.ndarray, y: np.ndarray) -> tuple[float, float | None, float, np.ndarray] | None:
+    """``c`` (least squares) and, for a template with a second constant, the ``k`` of its grid that
+    fits ``y`` best: ``(c, k, R², form values)``; None where the form is zero or not finite.
+    ``f(u[, k])`` evaluates the template's shape on the variable's samples ``column (n,)``."""
+    def at(k: float | None) -> tuple[float, float | None, float, np.ndarray] | None:
+        with np.errstate(all="ignore"):
+            t = np.array(np.broadcast_to(np.asarray(f(column) if k is None else f(column, k), dtype=float), y.shape))
+        tt = float(t @ t)
+        if not np.isfinite(t).all() or tt == 0.0:
+            return None
+        c = float(t @ y) / tt
+        return c, None if k is None else float(k), mse_r2(y, c * t)[1], t
+
+    if not m.k:
+        return at(None)
+    grid = k_grid(m.k, column)
+    fits = [at(float(k)) for k in grid]
+    scored = [i for i, fit in enumerate(fits) if fit is not None]
+    if not scored:
+        return None
+    i = max(scored, key=lambda j: fits[j][2])  # type: ignore[index]
+    best = fits[i]
+    lo, hi = float(grid[max(i - 1, 0)]), float(grid[min(i + 1, len(grid) - 1)])
+    if hi > lo:  # refined between the grid's neighbours of the best
+        from scipy.optimize import minimize_scalar
+
+        res = minimize_scalar(lambda k: -(at(k) or (0, 0, -np.inf))[2], bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-6 * max(abs(lo), abs(hi), 1e-12)})
+        refined = at(float(res.x))
+        if refined is not None and refined[2] > best[2]:  # type: ignore[index]
+            best = refined
+    return best
 
 
 def load_catalogue(path: str | Path | None = None) -> list[Mechanism]:
@@ -259,9 +325,9 @@ def _samples(expr: sympy.Expr, samples: Mapping[str, Any]) -> tuple[dict[str, np
     return {k: np.asarray(a[ok], dtype=float) for k, a in arrays.items()}, y[ok]
 
 
-def _formula(m: Mechanism, assignment: Mapping[str, str], coefficient: float) -> str:
-    """The template's text with ``c`` (4 significant digits) and the variable names filled in."""
-    values = {**assignment, COEFFICIENT: f"{coefficient:.4g}"}
+def _formula(m: Mechanism, assignment: Mapping[str, str], coefficient: float, k: float | None = None) -> str:
+    """The template's text with ``c`` (and ``k``; 4 significant digits) and the variable names filled in."""
+    values = {**assignment, COEFFICIENT: f"{coefficient:.4g}", **({SECOND: f"{k:.4g}"} if k is not None else {})}
     return abs_bars(re.sub(r"[A-Za-z_]\w*", lambda mt: values.get(mt.group(0), mt.group(0)), m.text))
 
 
@@ -309,15 +375,21 @@ def classify(
     names = sorted(cols)
     n = y.size
 
-    found: list[tuple[Mechanism, dict[str, str], float, float]] = []
+    found: list[tuple[Mechanism, dict[str, str], float, float, float | None]] = []
     for m in catalogue:
         dummies = [sympy.Symbol(f"_p{i}") for i in range(len(m.placeholders))]
+        extra = [sympy.Symbol(SECOND)] if m.k else []
         f = sympy.lambdify(
-            dummies, m.shape.xreplace({sympy.Symbol(p): d for p, d in zip(m.placeholders, dummies)}), modules="numpy"
+            dummies + extra, m.shape.xreplace({sympy.Symbol(p): d for p, d in zip(m.placeholders, dummies)}), modules="numpy"
         )
         for combo in itertools.permutations(names, len(m.placeholders)):
             assignment = dict(zip(m.placeholders, combo))
             if not m.admissible(assignment, units):
+                continue
+            if m.k:  # one placeholder and a second constant searched on its grid
+                fitted = fit_with_k(m, f, cols[combo[0]], y)
+                if fitted is not None:
+                    found.append((m, assignment, fitted[0], fitted[2], fitted[1]))
                 continue
             with np.errstate(all="ignore"):
                 t = np.array(np.broadcast_to(np.asarray(f(*[cols[v] for v in combo]), dtype=float), (n,)))
@@ -326,11 +398,11 @@ def classify(
                 continue
             c = float(t @ y) / tt
             _, r2 = mse_r2(y, c * t)
-            found.append((m, assignment, c, r2))
+            found.append((m, assignment, c, r2, None))
 
     # One report per mechanism and set of variables (a - b and b - a differ only in the sign of c).
     found.sort(key=lambda x: (-round(x[3], 9), x[2] < 0, x[0].complexity))
-    unique: dict[tuple[str, frozenset[str]], tuple[Mechanism, dict[str, str], float, float]] = {}
+    unique: dict[tuple[str, frozenset[str]], tuple[Mechanism, dict[str, str], float, float, float | None]] = {}
     for item in found:
         unique.setdefault((item[0].id, frozenset(item[1].values())), item)
     ranked = sorted(unique.values(), key=lambda x: -x[3])
@@ -346,8 +418,9 @@ def classify(
             variables=assignment,
             coefficient=c,
             r2=r2,
-            formula=_formula(m, assignment, c),
+            formula=_formula(m, assignment, c, k),
             complexity=m.complexity,
+            k=k,
         )
-        for m, assignment, c, r2 in ranked[:top]
+        for m, assignment, c, r2, k in ranked[:top]
     ]

@@ -112,7 +112,9 @@ def canonical_form(expr: sp.Expr, columns: dict[str, np.ndarray], units: dict[st
     for s in entry.template.free_symbols:
         if s.name in m.variables:
             mapping[s] = sp.Symbol(m.variables[s.name])
-    clean = entry.template.xreplace({**mapping, **{s: sp.Float(m.coefficient) for s in entry.template.free_symbols if s.name == "c"}})
+    constants = {"c": m.coefficient, **({"k": m.k} if entry.k and m.k is not None else {})}
+    clean = entry.template.xreplace({**mapping, **{s: sp.Float(constants[s.name]) for s in entry.template.free_symbols
+                                                   if s.name in constants}})
     return clean, m.name, m.r2
 
 

@@ -40,7 +40,7 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
     from physmend.symbolic.operators import priced_size
     import itertools
 
-    from physmend.explain.mechanisms import load_catalogue
+    from physmend.explain.mechanisms import SECOND, fit_with_k, load_catalogue
     from physmend.symbolic import Candidate, display, evaluate, mse_r2
 
     out, seen = [], set()
@@ -50,6 +50,13 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
             if not m.admissible(assignment, units):
                 continue
             shape = m.shape.xreplace({sp.Symbol(ph): sp.Symbol(v) for ph, v in assignment.items()})
+            if m.k:  # the second constant (threshold, scale, exponent): the best of its grid, then fixed
+                f = sp.lambdify([sp.Symbol("_u"), sp.Symbol(SECOND)], m.shape.xreplace({sp.Symbol(m.placeholders[0]): sp.Symbol("_u")}),
+                                modules="numpy")
+                fitted = fit_with_k(m, f, np.asarray(columns[combo[0]], dtype=float), y)
+                if fitted is None:
+                    continue
+                shape = shape.xreplace({sp.Symbol(SECOND): sp.Float(fitted[1])})
             t = evaluate(shape, columns, n=y.size)
             tt = float(t @ t) if np.isfinite(t).all() else 0.0
             if tt == 0.0 or (not shape.is_Number and nearly_constant(t)):

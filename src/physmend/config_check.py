@@ -37,7 +37,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
 ABOVE_ZERO = math.ulp(0.0)
 
 #: settings whose default ``auto`` has a list of names, not a number, as its alternative
-AUTO_OR_LIST = ("symbolic.parameters", "ude.inputs.parameters")
+AUTO_OR_LIST = ("symbolic.parameters", "ude.inputs.parameters", "ude.inputs.observed")
 
 #: switches whose alternative is a list of names (checked against the model where it is used)
 SWITCH_OR_LIST = ("ude.inputs.states", "ude.inputs.inputs")

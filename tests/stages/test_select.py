@@ -152,10 +152,10 @@ def test_mask_rivals_and_the_best_retrained_set() -> None:
     measured = {"tank2.h", "pipe.q"}
     assert rivals(["tank2.h"], ["tank2.h", "pipe.q", "tank1.h"], 1, measured) == [["tank1.h"]]
     assert rivals(["tank1.h"], ["tank1.h", "tank2.h", "tank3.h"], 1, measured) == []
-    # a kept set mixing measured and hidden states: the hidden ones alone are a rival
-    assert rivals(["tank2.h", "tank1.h"], ["tank2.h", "tank1.h"], 1, measured) == [["tank1.h"]]
+    # a kept set mixing measured and hidden states: the hidden ones alone and the measured ones alone are rivals
+    assert rivals(["tank2.h", "tank1.h"], ["tank2.h", "tank1.h"], 1, measured) == [["tank1.h"], ["tank2.h"]]
     assert rivals(["tank2.h", "tank1.h", "pipe.q"], ["tank2.h", "tank1.h", "pipe.q", "tank3.h"], 1, measured) == [
-        ["tank1.h"], ["tank2.h", "tank1.h", "tank3.h"]]
+        ["tank1.h"], ["tank2.h", "pipe.q"], ["tank2.h", "tank1.h", "tank3.h"]]
     assert rivals(["tank2.h", "pipe.q"], ["tank2.h", "pipe.q"], 1, measured) == []
     ranked, rival = SimpleNamespace(val_rmse=0.009), SimpleNamespace(val_rmse=0.002)
     assert best_retrained([(["tank2.h"], ranked), (["tank1.h"], rival)]) == (["tank1.h"], rival)

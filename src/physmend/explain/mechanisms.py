@@ -268,8 +268,11 @@ def fit_with_k(m: Mechanism, f: Any, column: np.ndarray, y: np.ndarray) -> tuple
     if hi > lo:  # refined between the grid's neighbours of the best
         from scipy.optimize import minimize_scalar
 
-        res = minimize_scalar(lambda k: -(at(k) or (0, 0, -np.inf))[2], bounds=(lo, hi), method="bounded",
-                              options={"xatol": 1e-6 * max(abs(lo), abs(hi), 1e-12)})
+        def loss(k: float) -> float:  # 1 - R² (finite: a k where the form fails counts as no fit)
+            fit = at(k)
+            return 1.0 - fit[2] if fit is not None and np.isfinite(fit[2]) else 2.0
+
+        res = minimize_scalar(loss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-6 * max(abs(lo), abs(hi), 1e-12)})
         refined = at(float(res.x))
         if refined is not None and refined[2] > best[2]:  # type: ignore[index]
             best = refined

@@ -42,17 +42,18 @@ def rivals(kept: list[str], order: list[str], n: int, measured: set[str] | None 
     ``n`` in the ranking ``order``. With ``measured`` (states that are outputs), only when the last
     kept state is measured, and only unmeasured rivals: the ranking is biased exactly there (a
     warm start fits measured equations; a hidden state's correction hides behind them). And a kept
-    set that mixes measured and unmeasured states has the unmeasured ones alone as a rival: the
-    measured state's correction may be the shadow of a hidden one's (the two-tank network put 96% of
-    an upper tank's leak on the measured lower tank; the upper tank's equation retrained alone
-    validated 2.5x better than both)."""
+    set that mixes measured and unmeasured states has the unmeasured ones alone and the measured
+    ones alone as rivals: one side's correction may be the shadow of the other's (the two-tank
+    network put 96% of an upper tank's leak on the measured lower tank, the upper tank's equation
+    retrained alone validated 2.5x better than both; a drug's elimination from the measured plasma
+    can be spread onto the hidden tissue compartment)."""
     if n <= 0 or not kept:
         return []
     sets: list[list[str]] = []
     if measured is not None:
         hidden = [name for name in kept if name not in measured]
-        if hidden and len(hidden) < len(kept):
-            sets.append(hidden)
+        if hidden and len(hidden) < len(kept):  # either side alone: one term may be split between them
+            sets += [hidden, [name for name in kept if name in measured]]
     others = [o for o in order if o not in kept]
     if measured is not None:
         if kept[-1] not in measured:

@@ -118,6 +118,27 @@ def canonical_form(expr: sp.Expr, columns: dict[str, np.ndarray], units: dict[st
     return clean, m.name, m.r2
 
 
+def measured_quantities(problem: Any, traj: Any, kept: list[str], have: set[str]) -> dict[str, np.ndarray]:
+    """The recorded quantities that measure a kept state through a factor of the parameters (a
+    concentration ``A/V`` of an amount ``A``: :mod:`physmend.ude.measured`), as formula inputs
+    ``(N,)`` along the training samples: a missing term often acts on the measured quantity, not
+    on the state it is stored in (an elimination on the concentration). Only outputs that are model
+    variables (a formula names them); those already in ``have`` are left out."""
+    from physmend.ude.measured import measured_outputs
+
+    model = problem.model
+    names = set(problem.compiled.observed_names)
+    wanted = [model.output_names[j] for j, i, f in measured_outputs(model)
+              if f != 1 and model.state_names[i] in kept]
+    wanted = [n for n in wanted if n in names and n not in have]
+    if not wanted:
+        return {}
+    with torch.no_grad():
+        values = problem.compiled.observed(traj.u, traj.x, traj.p)
+    order = problem.compiled.observed_names
+    return {n: values[:, order.index(n)].numpy() for n in wanted}
+
+
 def targets(hybrid: Any, problem: Any, traj: Any, kept: list[str]) -> dict[str, np.ndarray]:
     """``a·correction`` per kept state along the training samples: ``(N,)`` each, equation units."""
     from physmend.ude.analysis import equation_corrections
@@ -238,6 +259,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     columns = {n: feats[:, names.index(n)] for n in inputs if n in names}
     for p in params:
         columns[p] = traj.p[:, problem.model.parameter_names.index(p)].numpy()
+    columns.update(measured_quantities(problem, traj, kept, set(columns)))
     x_names = list(columns)
     X = np.stack([columns[n] for n in x_names], axis=1)
     units = {n: problem.model.units.get(n, "") for n in x_names}

@@ -164,22 +164,23 @@ def segments_finite(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u
 
 
 def _initial_segments(problem: Problem, ref: Reference, plan: Shooting) -> torch.Tensor:
-    """Segment starts from the model as written, with measured states set to their measurements."""
+    """Segment starts from the model as written, with measured states set to their measurements
+    (an output ``g(p)·x`` divided by its factor)."""
     t = ref.batch.t
     rows = torch.searchsorted(t, plan.starts).clamp(max=t.shape[0] - 1)
+    from physmend.ude.measured import factors, measured_outputs
+
     u = ref.states[rows, plan.exp_index].clone()  # (S, n)
-    names = problem.model.state_names
-    for j, out in enumerate(problem.model.output_names):
-        expr = problem.model.outputs[out]
-        if expr.is_Symbol and expr.name in names:
-            i = names.index(expr.name)
-            obs = ref.batch.obs[:, :, j]
-            for s in range(u.shape[0]):
-                col = obs[:, plan.exp_index[s]]
-                ok = torch.isfinite(col)
-                if ok.any():
-                    k = int(torch.argmin((t - plan.starts[s]).abs() + (~ok) * 1e30))
-                    u[s, i] = col[k]
+    g = factors(problem.model)(ref.batch.params)  # (B, q): an output g(p)·x records x = y / g(p)
+    for c, (j, i, _) in enumerate(measured_outputs(problem.model)):
+        obs = ref.batch.obs[:, :, j]
+        for s in range(u.shape[0]):
+            b = int(plan.exp_index[s])
+            col = obs[:, b]
+            ok = torch.isfinite(col)
+            if ok.any():
+                k = int(torch.argmin((t - plan.starts[s]).abs() + (~ok) * 1e30))
+                u[s, i] = col[k] / g[b, c]
     return u
 
 

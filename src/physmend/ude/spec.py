@@ -53,6 +53,19 @@ def identity_states(problem: Problem) -> list[str]:
     return out
 
 
+def recorded_quantities(problem: Problem) -> list[str]:
+    """Algebraic variables that are recorded outputs measuring a state through a factor of the
+    parameters (a concentration ``A/V`` of an amount: :mod:`physmend.ude.measured`): what
+    ``ude.inputs.observed: auto`` gives the network — a missing term often acts on the measured
+    quantity, and only the quantity carries over to experiments whose factor training never saw."""
+    from physmend.ude.measured import measured_outputs
+
+    model = problem.model
+    observed = set(problem.compiled.observed_names)
+    names = [model.output_names[j] for j, _, f in measured_outputs(model) if f != 1]
+    return [n for n in names if n in observed]
+
+
 def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     """Choose corrected equations and network inputs from ``cfg.ude``; normalise from ``ref``.
 
@@ -65,7 +78,12 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
     corrected = [n for n in corrected if n in named or n not in identity_states(problem)]
     sel = ude.inputs
     in_states = _selected(sel.states, model.state_names, "ude.inputs.states")
-    in_observed = match_names(list(sel.observed or []), list(model.observed), "ude.inputs.observed")
+    if isinstance(sel.observed, str):
+        if sel.observed != "auto":
+            raise UDEConfigError(f"ude.inputs.observed must be 'auto' or a list of names/patterns, but got {sel.observed!r}")
+        in_observed = recorded_quantities(problem)
+    else:
+        in_observed = match_names(list(sel.observed or []), list(model.observed), "ude.inputs.observed")
     in_inputs = _selected(sel.inputs, model.input_names, "ude.inputs.inputs")
     if isinstance(sel.parameters, str):
         if sel.parameters != "auto":

@@ -47,14 +47,11 @@ class Forced:
 
 
 def measured_states(problem: Problem) -> list[tuple[int, int]]:
-    """``(output index, state index)`` for every output that is a plain state."""
-    names = problem.model.state_names
-    pairs = []
-    for j, out in enumerate(problem.model.output_names):
-        expr = problem.model.outputs[out]
-        if getattr(expr, "is_Symbol", False) and expr.name in names:
-            pairs.append((j, names.index(expr.name)))
-    return pairs
+    """``(output index, state index)`` for every output that measures one state: the state itself
+    or the state times a factor of the parameters (:mod:`physmend.ude.measured`)."""
+    from physmend.ude.measured import measured_outputs
+
+    return [(j, i) for j, i, _ in measured_outputs(problem.model)]
 
 
 #: grid points per weak-form window in the warm-start regression: longer windows use every k-th point
@@ -89,7 +86,7 @@ def _smooth(t: np.ndarray, y: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray,
 def forced_trajectories(problem: Problem, batch: Batch, hybrid: HybridModel, dt: float) -> Forced | None:
     """Smooth the measured states and simulate the rest with them forced (fixed-step RK4, step ``dt`` s).
 
-    Returns None when no output is a plain state (nothing to match).
+    Returns None when no output measures a state (nothing to match).
     """
     pairs = measured_states(problem)
     train = [b for b, e in enumerate(problem.experiments) if e.role == "train"]
@@ -120,9 +117,13 @@ def forced_trajectories(problem: Problem, batch: Batch, hybrid: HybridModel, dt:
             near = near_c if c == 0 else near & near_c
         valid[:, e] = near
     dtype = batch.t.dtype
-    yh = torch.as_tensor(y_hat, dtype=dtype)
-    dyh = torch.as_tensor(dy_hat, dtype=dtype)
     sel = torch.tensor(train)
+    from physmend.ude.measured import factors
+
+    with torch.no_grad():  # an output y = g(p)·x records the state x = y / g(p), per experiment
+        g = factors(problem.model)(hybrid.parameters_for(batch.params[sel]))[None]  # (1, E, q)
+    yh = torch.as_tensor(y_hat, dtype=dtype) / g
+    dyh = torch.as_tensor(dy_hat, dtype=dtype) / g
     x_fine = batch.inputs.select(sel).at(torch.as_tensor(fine, dtype=dtype))  # (2G-1, E, m)
     idx = torch.tensor([i for _, i in pairs])
     with torch.no_grad():

@@ -96,6 +96,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         samples[n] = np.repeat(batch1.params[train_b, i].numpy()[None], batch1.t.shape[0], 0).reshape(-1)
     terms = []
     symbols = {v.name: v.symbol for v in sm.states + sm.inputs + sm.parameters}
+    symbols.update({n: sp.Symbol(n) for n in sm.observed if n not in symbols})  # a formula may use a recorded quantity
     for c in corrections:
         consts = {k: v for k, v in c.constants.items()}
         expr = parse_expression(c.term, {**symbols, **{k: sp.Symbol(k) for k in consts}}, where=c.state)

@@ -97,6 +97,10 @@ def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list
     G = forced.states.shape[0]
     for k, n in enumerate(problem.model.parameter_names):
         columns[n] = np.broadcast_to(p[:, k].numpy(), (G, p.shape[0])).copy()
+    with torch.no_grad():  # algebraic variables too (a formula may act on a recorded concentration)
+        observed = problem.compiled.observed(forced.states, forced.inputs, p[None])
+    for k, n in enumerate(problem.compiled.observed_names):
+        columns.setdefault(n, observed[..., k].numpy())
     rates = RecordedRates(columns=columns, targets={}, valid=np.zeros(0, dtype=bool), window=window)
     point_valid = forced.valid.numpy().astype(float)
     rates.valid = rates.box(point_valid) > 1 - 1e-9

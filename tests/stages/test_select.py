@@ -159,6 +159,11 @@ def test_mask_rivals_and_the_best_retrained_set() -> None:
     assert rivals(["tank2.h", "pipe.q"], ["tank2.h", "pipe.q"], 1, measured) == []
     ranked, rival = SimpleNamespace(val_rmse=0.009), SimpleNamespace(val_rmse=0.002)
     assert best_retrained([(["tank2.h"], ranked), (["tank1.h"], rival)]) == (["tank1.h"], rival)
+    # the source network masked to a set competes with that set's retraining: the better one is kept
+    from physmend.stages.mask import SourceNetwork
+
+    retrained, masked = SimpleNamespace(val_rmse=0.19), SourceNetwork(0.137)
+    assert best_retrained([(["central.A"], retrained), (["central.A"], masked)])[1] is masked
     boom = TrainingDiverged("loss became non-finite")
     assert best_retrained([(["tank2.h"], ranked), (["tank1.h"], boom)]) == (["tank2.h"], ranked)
     with pytest.raises(TrainingDiverged, match="non-finite"):

@@ -153,6 +153,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         k = choose_k(full, by_k, float(mc.tolerance))
         kept = order[:k]
     result = None
+    winner: Any = None  # the candidate kept (retrained or the source network), for the printout
     tried: list[tuple[list[str], Any]] = []
     if bool(mc.retrain):
         work = OmegaConf.merge(work, OmegaConf.from_dotlist([str(o) for o in mc.train_overrides]))
@@ -164,14 +165,23 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         todo = [names for names in sets if not (same and names is kept)]
         done = iter(retrain_all(work, problem, todo, train, workers(mc.get("workers", "auto"))))
         tried = [(names, SourceNetwork(full) if same and names is kept else next(done)) for names in sets]
+        masked = dict(by_k).get(len(kept))
+        if not same and masked is not None and math.isfinite(masked):
+            # the source network masked to the kept set is a candidate too: a retraining of that set that
+            # validates worse than the masked network it stands for is not kept instead of it
+            tried.append((kept, SourceNetwork(masked)))
         if any(not isinstance(r, Exception) for _, r in tried):
             kept, result = best_retrained(tried, float(mc.tolerance))
+            winner = result
             k = len(kept)
             if isinstance(result, SourceNetwork):
                 result = None  # the source network goes on, its corrections masked to the kept set
         else:  # no retraining could be simulated: the source network, masked to the kept set, goes on
             print(f"Every retrained candidate set diverged ({tried[0][1]}); the source network goes on with "
                   f"its corrections masked to {', '.join(kept)}.")
+    def own_set(names: list[str]) -> bool:
+        return sorted(names) == sorted(hybrid.spec.corrected)
+
     kept_in_order = [n for n in problem.model.state_names if n in kept]
     own = sorted(kept) == sorted(hybrid.spec.corrected)  # the kept set is all the source network corrects
     if result is not None:
@@ -216,8 +226,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     if len(tried) > 1:
         lines += ["", "Each candidate set retrained alone (the ranking favours equations a warm start could fit; "
                       "a hidden state's equation may explain the data better):"]
-        lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}" + ("  <- kept" if names == kept else "")
-                  for names, r in tried]
+        lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}"
+                  + (" (the source network masked to it, not retrained)" if isinstance(r, SourceNetwork) and not own_set(names) else "")
+                  + ("  <- kept" if r is winner else "") for names, r in tried]
     lines += [f"Kept k = {k}: {', '.join(kept_in_order)} (tolerance {float(mc.tolerance):.0%})."]
     if result is None and bool(mc.retrain) and own:
         lines.append("The kept set is the source network's own: it goes on as it is (a retraining would reproduce it).")

@@ -39,3 +39,11 @@ def test_a_state_times_a_factor_of_the_parameters_is_a_measurement_of_it() -> No
     g = factors(sm)(p)
     assert g.shape == (2, 2)
     assert g[:, 0].tolist() == pytest.approx([1 / 8, 1 / 12]) and g[:, 1].tolist() == [1.0, 1.0]
+
+
+def test_the_recorded_quantities_are_the_scaled_outputs_that_are_model_variables() -> None:
+    from physmend.ude.measured import recorded_quantities
+
+    sm = _model().simplify()
+    assert recorded_quantities(sm, ["central.C", "offset"]) == ["central.C"]  # tissue.A is a state: not one
+    assert recorded_quantities(sm, ["central.C"], states=["tissue.A"]) == []

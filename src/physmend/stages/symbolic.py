@@ -124,13 +124,9 @@ def measured_quantities(problem: Any, traj: Any, kept: list[str], have: set[str]
     ``(N,)`` along the training samples: a missing term often acts on the measured quantity, not
     on the state it is stored in (an elimination on the concentration). Only outputs that are model
     variables (a formula names them); those already in ``have`` are left out."""
-    from physmend.ude.measured import measured_outputs
+    from physmend.ude.measured import recorded_quantities
 
-    model = problem.model
-    names = set(problem.compiled.observed_names)
-    wanted = [model.output_names[j] for j, i, f in measured_outputs(model)
-              if f != 1 and model.state_names[i] in kept]
-    wanted = [n for n in wanted if n in names and n not in have]
+    wanted = [n for n in recorded_quantities(problem.model, problem.compiled.observed_names, kept) if n not in have]
     if not wanted:
         return {}
     with torch.no_grad():

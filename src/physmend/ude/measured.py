@@ -6,7 +6,7 @@ experiment: a volume may differ between them), is a record of the state itself.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import Any
 
 import sympy as sp
@@ -50,3 +50,11 @@ def factors(model: Any) -> Callable[[torch.Tensor], torch.Tensor]:
         return torch.stack([torch.as_tensor(v, dtype=p.dtype, device=p.device).expand(p.shape[:-1]) for v in vals], -1)
 
     return g
+
+
+def recorded_quantities(model: Any, observed: Collection[str], states: Collection[str] | None = None) -> list[str]:
+    """Algebraic variables (names in ``observed``) that are recorded outputs measuring a state
+    through a factor other than 1 (a concentration ``A/V``); only those of ``states`` if given."""
+    names = [model.output_names[j] for j, i, f in measured_outputs(model)
+             if f != 1 and (states is None or model.state_names[i] in states)]
+    return [n for n in names if n in set(observed)]

@@ -58,12 +58,9 @@ def recorded_quantities(problem: Problem) -> list[str]:
     parameters (a concentration ``A/V`` of an amount: :mod:`physmend.ude.measured`): what
     ``ude.inputs.observed: auto`` gives the network — a missing term often acts on the measured
     quantity, and only the quantity carries over to experiments whose factor training never saw."""
-    from physmend.ude.measured import measured_outputs
+    from physmend.ude.measured import recorded_quantities as recorded
 
-    model = problem.model
-    observed = set(problem.compiled.observed_names)
-    names = [model.output_names[j] for j, _, f in measured_outputs(model) if f != 1]
-    return [n for n in names if n in observed]
+    return recorded(problem.model, problem.compiled.observed_names)
 
 
 def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:

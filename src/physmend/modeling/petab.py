@@ -229,14 +229,13 @@ def sbml_text(sm: Any, experiments: Sequence[Mapping[str, Any]], ids: Mapping[st
 
 
 def tables(sm: Any, experiments: Sequence[Mapping[str, Any]], ids: Mapping[str, str],
-           estimated: Mapping[str, tuple[float, float]]) -> dict[str, str]:
+           estimated: Mapping[str, tuple[float, float]], sigmas: Mapping[str, float]) -> dict[str, str]:
     """The PEtab tables (TSV text) and the YAML file, keyed like :data:`FILES` (without ``sbml``).
 
     ``experiments``: each ``id``, ``role``, ``initial`` (state -> value), ``parameters`` (name ->
     value, those that differ from the declared), ``obs_time (T,)``, ``obs (T, k)`` (outputs in
     ``sm.outputs`` order, NaN = not measured). ``estimated``: parameter -> (lower, upper) bounds
-    of those to estimate."""
-    from physmend.explain.residuals import noise_floor
+    of those to estimate. ``sigmas``: output -> noise σ (its unit; 1 where missing)."""
 
     varying = sorted({n for e in experiments for n in e["parameters"]})
     cond_cols = ["conditionId", "conditionName", EXPERIMENT_PARAMETER, *[ids[n] for n in varying],
@@ -253,9 +252,8 @@ def tables(sm: Any, experiments: Sequence[Mapping[str, Any]], ids: Mapping[str, 
     obs_rows = ["observableId\tobservableName\tobservableFormula\tobservableTransformation\tnoiseFormula\tnoiseDistribution"]
     meas_rows = ["observableId\tsimulationConditionId\tmeasurement\ttime\tdatasetId"]
     for j, out in enumerate(outputs):
-        sigmas = [noise_floor(np.asarray(e["obs_time"]), np.asarray(e["obs"])[:, j]) for e in experiments]
-        sigmas = [s for s in sigmas if math.isfinite(s) and s > 0]
-        sigma = float(np.median(sigmas)) if sigmas else 1.0
+        sigma = float(sigmas.get(out, 1.0))
+        sigma = sigma if math.isfinite(sigma) and sigma > 0 else 1.0
         oid = sbml_id(f"y_{out}")
         obs_rows.append(f"{oid}\t{out}\t{l3(sm.outputs[out], ids)}\tlin\t{_num(sigma)}\tnormal")
         for e in experiments:
@@ -297,9 +295,10 @@ def identifiers(sm: Any) -> dict[str, str]:
     return ids
 
 
-def petab_files(sm: Any, experiments: Sequence[Mapping[str, Any]], estimated: Mapping[str, tuple[float, float]]) -> dict[str, str]:
-    """Every file of the PEtab problem (name in :data:`FILES` -> text)."""
+def petab_files(sm: Any, experiments: Sequence[Mapping[str, Any]], estimated: Mapping[str, tuple[float, float]],
+                sigmas: Mapping[str, float]) -> dict[str, str]:
+    """Every file of the PEtab problem (name in :data:`FILES` -> text); arguments as :func:`tables`."""
     ids = identifiers(sm)
-    texts = tables(sm, experiments, ids, estimated)
+    texts = tables(sm, experiments, ids, estimated, sigmas)
     texts["sbml"] = sbml_text(sm, experiments, ids)
     return {FILES[k]: v for k, v in texts.items()}

@@ -93,7 +93,14 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                     "inputs": {n: (c.time, c.values) for n, c in e.inputs.items()}} for e in problem.experiments]
         estimated = {v.name: tuple(map(float, v.bounds)) for v in sm.parameters if v.uncertain and v.bounds}
         estimated |= {n: (-10 * abs(v) or -1.0, 10 * abs(v) or 1.0) for n, v in constants.items()}
-        return petab_files(sm, records, estimated)
+        from physmend.explain.residuals import noise_floor
+
+        sigmas = {}
+        for j, out in enumerate(sm.outputs):  # each output's noise: the median over the records' estimates
+            found = [noise_floor(np.asarray(e.obs_time), np.asarray(e.obs)[:, j]) for e in problem.experiments]
+            found = [v for v in found if np.isfinite(v) and v > 0]
+            sigmas[out] = float(np.median(found)) if found else 1.0
+        return petab_files(sm, records, estimated, sigmas)
 
     texts = {"latex": lambda: latex_text(sm, corrected, constants, info),
              "sympy": lambda: sympy_json(sm, corrected, info),

@@ -180,10 +180,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             print(f"Every retrained candidate set diverged ({tried[0][1]}); the source network goes on with "
                   f"its corrections masked to {', '.join(kept)}.")
     def own_set(names: list[str]) -> bool:
+        """Whether ``names`` is every equation the source network corrects."""
         return sorted(names) == sorted(hybrid.spec.corrected)
 
     kept_in_order = [n for n in problem.model.state_names if n in kept]
-    own = sorted(kept) == sorted(hybrid.spec.corrected)  # the kept set is all the source network corrects
+    own = own_set(kept)  # the kept set is all the source network corrects
     if result is not None:
         work.ude.corrected = kept_in_order  # the retrained network's configuration
     with stage_run(store, work, stage=STAGE, source_run_id=src_run.info.run_id, run_name="mask",

@@ -45,14 +45,14 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
 
     out, seen = [], set()
     for m in load_catalogue():
+        f = (sp.lambdify([sp.Symbol("_u"), sp.Symbol(SECOND)], m.shape.xreplace({sp.Symbol(m.placeholders[0]): sp.Symbol("_u")}),
+                         modules="numpy") if m.k else None)  # once per form, not per assignment
         for combo in itertools.permutations(inputs, len(m.placeholders)):
             assignment = dict(zip(m.placeholders, combo))
             if not m.admissible(assignment, units):
                 continue
             shape = m.shape.xreplace({sp.Symbol(ph): sp.Symbol(v) for ph, v in assignment.items()})
             if m.k:  # the second constant (threshold, scale, exponent): the best of its grid, then fixed
-                f = sp.lambdify([sp.Symbol("_u"), sp.Symbol(SECOND)], m.shape.xreplace({sp.Symbol(m.placeholders[0]): sp.Symbol("_u")}),
-                                modules="numpy")
                 fitted = fit_with_k(m, f, np.asarray(columns[combo[0]], dtype=float), y)
                 if fitted is None:
                     continue

@@ -116,7 +116,7 @@ def compose(
         with initialize_config_dir(version_base="1.3", config_dir=str(config_dir())):
             cfg = hydra_compose(config_name=config_name, overrides=extra, return_hydra_config=True)
     except (HydraException, OmegaConfBaseException) as exc:
-        raise ConfigError(f"configuration error: {exc}") from exc
+        raise ConfigError(_one_line(exc)) from exc
     finally:
         GlobalHydra.instance().clear()
     OmegaConf.set_readonly(cfg, False)
@@ -140,6 +140,24 @@ def compose(
             raise ConfigError(str(exc)) from None
     OmegaConf.set_struct(cfg, True)
     return cfg
+
+
+def _one_line(exc: Exception) -> str:
+    """Hydra's composition error as one line: the missing option with the ones there are, or the
+    message's own lines joined (its list of search paths left out)."""
+    from hydra.errors import MissingConfigException
+
+    if isinstance(exc, MissingConfigException) and exc.missing_cfg_file and exc.options is not None:
+        group, _, option = str(exc.missing_cfg_file).rpartition("/")
+        if group:
+            return (f"configuration error: {group}={option} names no option of config group {group!r}; "
+                    f"the options are: {', '.join(sorted(exc.options)) or '(none)'}")
+    text = str(exc).split("Config search path:")[0]
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    message = " ".join(lines)
+    if len(message) > 400:
+        message = message[:397] + "..."
+    return f"configuration error: {message}"
 
 
 def _option_file(group: str, choice: str, dirs: Sequence[Path]) -> str:

@@ -58,6 +58,8 @@ CASES: list[tuple[str, str, Setup, list[str]]] = [
     ("switch", "diagnose", _override("diagnose.plots=maybe"), ["diagnose.plots", "true or false"]),
     ("unknown operator", "diagnose", _override("+operators.cosine=1"), ["operators", "default.yaml", "'cosine'"]),
     ("negative price", "diagnose", _override("operators.mul=-2"), ["default.yaml", "'mul'", "-2"]),
+    ("unknown option", "diagnose", _override("model=nosuch"), ["model=nosuch", "the options are", "oscillator"]),
+    ("unknown key", "sweep", _override("train.nosuch=1"), ["train.nosuch", "+train.nosuch=1"]),
     ("unknown scheme", "diagnose", _override("tracking.uri=foo://bar"), ["tracking.uri", "foo://bar"]),
     ("missing folder", "diagnose", _override("tracking.uri=sqlite:////no/such/folder/mlflow.db"),
      ["tracking.uri", "/no/such/folder"]),

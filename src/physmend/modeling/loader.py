@@ -83,6 +83,9 @@ def load_model(builder: str, options: Mapping[str, Any] | None = None, correctio
         raise ModelError(
             f"model.builder {builder!r} must return a physmend.modeling.Model, but returned {type(model).__name__}"
         )
+    from physmend.modeling.fingerprint import remember
+
+    remember(builder, dict(options or {}), model)  # the model as built, before any corrections file
     if corrections:
         from physmend.modeling.corrections import apply_corrections, read_corrections
 

@@ -63,9 +63,9 @@ def load_source(store: Store, run: Any, current: DictConfig | None, *, with_mode
 
     ``current``: the user's composed configuration; the model and data are built from it, after
     checking the run was made with the same (:mod:`physmend.tracking.stored_config`)."""
-    from physmend.tracking.stored_config import read_stored_config
-
     from physmend.problem import load_problem
+    from physmend.tracking.fingerprint import check_same_model
+    from physmend.tracking.stored_config import read_stored_config
     from physmend.ude import ArtifactError, load_hybrid
 
     run_id = run.info.run_id
@@ -79,6 +79,8 @@ def load_source(store: Store, run: Any, current: DictConfig | None, *, with_mode
             raise TrackingError(f"run {run_id!r} lacks the artifacts physmend needs (config.yaml, model/): {exc}") from None
         cfg = read_stored_config(folder / "config.yaml", run_id, current)
         problem = load_problem(cfg)
+        if current is not None:
+            check_same_model(store, run, cfg)
         hybrid = None
         if with_model:
             try:

@@ -42,6 +42,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.problem import load_problem
     from physmend.stages.common import merged
     from physmend.tracking import TrackingError, download_artifact, get_run, open_store
+    from physmend.tracking.fingerprint import check_same_model
     from physmend.tracking.stored_config import read_stored_config
 
     if not source_run_id:
@@ -67,6 +68,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         local.write_text(Path(corr_path).read_text())
         work.model.corrections = str(local)
         problem = load_problem(work)
+    check_same_model(store, run_, work)
     sm = problem.model
     name = str(meta.get("model", sm.name))
     base = module_name(name, run_id)

@@ -54,6 +54,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.problem import load_problem
     from physmend.stages.common import merged, resolve
     from physmend.tracking import download_artifact, open_store, stage_run
+    from physmend.tracking.fingerprint import check_same_model
     from physmend.tracking.stored_config import read_stored_config
 
     store = open_store(cfg.tracking)
@@ -64,6 +65,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     base_cfg.model.corrections = None
     corrections, _ = read_corrections(corr_path)
     before = load_problem(base_cfg)
+    check_same_model(store, src_run, base_cfg)
     fixed_cfg = base_cfg.copy()
     with tempfile.TemporaryDirectory() as tmp:
         local = Path(tmp) / "corrections.yaml"

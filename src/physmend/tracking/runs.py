@@ -101,6 +101,10 @@ def stage_run(
     }
     if source_run_id:  # until the stage describes what it found
         all_tags[NOTE_TAG] = f"physmend {stage}, from run {source_run_id}"
+    from physmend.tracking.fingerprint import STRUCTURE_FILE, fingerprint_tags
+
+    model_tags, structure = fingerprint_tags(cfg)
+    all_tags.update(model_tags)
     all_tags.update(tags or {})
     with mlflow.start_run(
         experiment_id=store.experiment_id,
@@ -111,6 +115,8 @@ def stage_run(
     ) as active:
         handle = StageRun(store, active.info.run_id)
         handle.log_text(OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+        if structure is not None:
+            handle.log_text(structure, STRUCTURE_FILE)
         try:
             yield handle
         except BaseException as exc:

@@ -234,6 +234,7 @@ def load_trial(
         TrackingError: the run is not a finished trial with model artifacts, or they do not fit.
     """
     from physmend.problem import load_problem
+    from physmend.tracking.fingerprint import check_same_model
     from physmend.tracking.stored_config import read_stored_config
     from physmend.ude import ArtifactError, load_hybrid
 
@@ -249,6 +250,8 @@ def load_trial(
         cfg = read_stored_config(folder / "config.yaml", run_id, current)  # data: never resolved
         cfg = _apply_overrides(cfg, problem_cfg_overrides)
         problem = load_problem(cfg)
+        if current is not None:
+            check_same_model(store, store.client.get_run(run_id), cfg)
         try:
             hybrid = load_hybrid(cfg, problem, folder)
         except ArtifactError as exc:

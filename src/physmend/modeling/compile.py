@@ -238,6 +238,11 @@ class CompiledModel:
             return lambda u, x: self.rhs(u, x, p)
         return BoundRhs(self._affine, p)
 
+    @property
+    def affine(self) -> bool:
+        """True when every row of ``du/dt`` is ``A(p)·u + B(p)·x + c(p)`` (no nonlinear rows)."""
+        return self._affine is not None and self._affine.rest is None
+
     def jacobian(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor] | None:
         """``J(u, x) = d(du/dt)/du (B, n, n)`` for parameters ``p (B, n_params)`` where every
         equation is affine in the states (then ``J = A(p)``); None otherwise."""

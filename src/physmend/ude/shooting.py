@@ -97,25 +97,28 @@ def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
     )
 
 
-def rk4_segments(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u0: torch.Tensor, plan: Shooting,
-                 box: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+def rk4_segments(rhs: Callable[[torch.Tensor, Any], torch.Tensor], u0: torch.Tensor, plan: Shooting,
+                 box: tuple[torch.Tensor, torch.Tensor] | None = None, drives: Any = None) -> torch.Tensor:
     """Fixed-step RK4 over all segments at once: states at grid points ``(steps+1, S, n)``.
 
     ``box = (lo, hi)``, each ``(n,)``: every stage's state is held inside it (:func:`state_box`), so
     a segment that a half-trained correction sends off to infinity (a population pushed below zero
     into a quadratic loss, say) stays finite: it fits badly, and the other segments still train.
+    ``drives``: what ``rhs`` takes at each half step instead of the inputs ``plan.x_half``
+    (:class:`physmend.ude.drive.Drives`).
     """
     h = plan.dt
+    xs = plan.x_half if drives is None else drives
     hold = (lambda v: v) if box is None else (lambda v: torch.clamp(v, box[0], box[1]))
     u = u0
     out = [u]
     for k in range(plan.steps):
-        x0, xm, x1 = plan.x_half[2 * k], plan.x_half[2 * k + 1], plan.x_half[2 * k + 2]
+        x0, xm, x1 = xs[2 * k], xs[2 * k + 1], xs[2 * k + 2]
         k1 = rhs(u, x0)
-        k2 = rhs(hold(u + 0.5 * h * k1), xm)
-        k3 = rhs(hold(u + 0.5 * h * k2), xm)
-        k4 = rhs(hold(u + h * k3), x1)
-        u = hold(u + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4))
+        k2 = rhs(hold(torch.add(u, k1, alpha=0.5 * h)), xm)
+        k3 = rhs(hold(torch.add(u, k2, alpha=0.5 * h)), xm)
+        k4 = rhs(hold(torch.add(u, k3, alpha=h)), x1)
+        u = hold(torch.add(u, torch.add(k1, torch.add(k2, k3), alpha=2.0).add_(k4), alpha=h / 6.0))
         out.append(u)
     return torch.stack(out)
 

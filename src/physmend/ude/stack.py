@@ -18,6 +18,7 @@ import torch
 from physmend.problem import Problem
 from physmend.simulate.initial import estimate_initial
 from physmend.simulate import Batch, make_batch
+from physmend.ude.drive import Drives, drivable, split_first_layer
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec
 from physmend.ude.stack_net import _Net, _pad_networks, _write_back
 from physmend.ude.stack_plan import _plan_key, _time_grid_parts
@@ -195,6 +196,46 @@ class _Stack:
 
         return f
 
+    def _drive(self, net: _Net, m: int, p: torch.Tensor, xs: torch.Tensor
+               ) -> tuple[Callable[[torch.Tensor, Any], torch.Tensor], Drives] | None:
+        """:meth:`_rhs` with what does not depend on the state computed once for the half-step inputs
+        ``xs (H, m·R, n_inputs)`` (:mod:`physmend.ude.drive`); None where that does not apply."""
+        h = self.template
+        if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
+            return None
+        bound = self.problem.compiled.bind(p)
+        n = len(self.problem.compiled.state_names)
+        physics = bound.c.expand(xs.shape[0], *bound.c.shape)
+        if self.problem.compiled.input_names:
+            physics = physics + torch.einsum("sij,hsj->hsi", bound.B, xs)
+        rows = p.shape[0]
+        r = rows // m
+        wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
+                                           self.std, len(h.state_idx), len(h.input_idx))  # (M, b, ·), (M, b)
+        pre = b1[None, :, None, :].expand(xs.shape[0], m, r, b1.shape[-1])  # (H, M, r, b)
+        if h.input_idx:
+            pre = pre + xs[..., h.input_idx].reshape(xs.shape[0], m, r, -1) @ wx.transpose(1, 2)
+        if h.param_idx:
+            pre = pre + (p[:, h.param_idx].reshape(m, r, -1) @ wp.transpose(1, 2))[None]
+        wu_t = wu.transpose(1, 2)  # (M, n_in_states, b)
+        coef = self._coef(p)
+        inv = None if coef is None else coef.reciprocal()
+        A = bound.A
+        state_idx = None if h._all_states else torch.tensor(h.state_idx, dtype=torch.long)
+        idx = h.corrected_idx
+        index = None if idx == list(range(n)) else torch.tensor(idx, dtype=torch.long)
+
+        def f(u: torch.Tensor, drive: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+            d, first = drive
+            us = u if state_idx is None else u[:, state_idx]
+            corr = net(None, torch.baddbmm(first, us.reshape(m, r, -1), wu_t)).reshape(rows, -1)
+            if inv is not None:
+                corr = corr * inv
+            du = torch.baddbmm(d.unsqueeze(-1), A, u.unsqueeze(-1)).squeeze(-1)
+            return du + corr if index is None else du.index_add(-1, index, corr)
+
+        return f, Drives(physics, pre.reshape(xs.shape[0], m, r, -1))
+
     # -- one epoch -----------------------------------------------------------------------------------------
     def losses(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Each model's training loss and fit loss ``(M,)``, as train() computes them for one."""
@@ -204,7 +245,11 @@ class _Stack:
         u0 = torch.where(self.pinned[None], self.fixed_first[None],
                          torch.clamp(self.seg0 + self.free * self.state_scale, self.lo, self.hi))
         u0 = u0.reshape(m * s, n)
-        traj = rk4_segments(self._rhs(self.net, m, p), u0, plan, self.box)  # (K+1, M·S, n)
+        fast = self._drive(self.net, m, p, plan.x_half)  # the same function, a third of the operations
+        if fast is not None:
+            traj = rk4_segments(fast[0], u0, plan, self.box, fast[1])  # (K+1, M·S, n)
+        else:
+            traj = rk4_segments(self._rhs(self.net, m, p), u0, plan, self.box)
         y_grid = self.problem.compiled.outputs(traj, plan.x_half[0::2], p[None])  # (K+1, M·S, k)
         y_grid = y_grid.reshape(y_grid.shape[0], m, s, -1).movedim(1, 0)  # (M, K+1, S, k)
         ya = y_grid[:, plan.obs_k, plan.obs_s, plan.obs_j]

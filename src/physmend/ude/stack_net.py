@@ -53,12 +53,13 @@ class _Net:
             return a
         return torch.cat([act(a[start:end]) for act, start, end in self.runs])
 
-    def __call__(self, z: torch.Tensor) -> torch.Tensor:
-        """Corrections ``(M, N, k)`` of normalised features ``z (M, N, n_in)``."""
+    def __call__(self, z: torch.Tensor | None, first: torch.Tensor | None = None) -> torch.Tensor:
+        """Corrections ``(M, N, k)`` of normalised features ``z (M, N, n_in)``, or from the first
+        layer's output ``first (M, N, b_0)`` (before its activation; ``z`` None, :mod:`physmend.ude.drive`)."""
         h = z
         last = len(self.weights) - 1
         for l, (w, b) in enumerate(zip(self.weights, self.biases)):
-            a = torch.baddbmm(b, h, w)
+            a = first if l == 0 and first is not None else torch.baddbmm(b, h, w)
             if l == last:
                 return a * self.scale
             a = self.activation(a)

@@ -1,0 +1,116 @@
+"""The training solve's precomputed drives (physics B·x + c, the network's first layer on inputs and
+parameters, normalisation folded in) give the same trajectories and gradients as the plain
+right-hand side: for one model and for a stack, with subsets of states, inputs, parameters and
+corrected equations, both correction units and an estimated parameter."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from physmend.config import compose
+from physmend.problem import load_problem
+from physmend.ude.drive import drivable, hybrid_drive
+from physmend.ude.hybrid import HybridModel
+from physmend.ude.shooting import BOX_MARGIN, _initial_segments, plan_shooting, rk4_segments
+from physmend.ude.spec import build_spec
+from physmend.ude.timescale import resolve_times
+from physmend.ude.train import reference
+
+BASE = ["model=oscillator", "data=oscillator", "train.step=0.1", "train.segment_length=5", "simulate=explicit"]
+VARIANTS = [
+    [],
+    ["ude.units=state", "ude.activation=tanh", "ude.depth=1"],
+    ["ude.inputs.states=[cart.v]", "ude.inputs.parameters=[cart.x0, spring.k]", "ude.corrected=[cart.v]"],
+    ["ude.inputs.inputs=false", "ude.activation=gelu", "ude.depth=3", "ude.width=7"],
+]
+
+
+def _setup(project: Path, extra: list[str]):  # noqa: ANN202
+    cfg = compose([*BASE, *extra], user_config_dir=project / "my_conf")
+    problem = load_problem(cfg)
+    ref = reference(problem, cfg)
+    cfg = resolve_times(cfg, problem, ref)
+    torch.manual_seed(0)
+    hybrid = HybridModel(problem.compiled, build_spec(cfg, problem, ref), problem.dtype)
+    with torch.no_grad():  # a trained-looking network: corrections of a visible size
+        for prm in hybrid.net.parameters():
+            prm.add_(0.3 * torch.randn_like(prm))
+    plan = plan_shooting(problem, ref.batch, cfg)
+    u0 = _initial_segments(problem, ref, plan)
+    return cfg, problem, ref, hybrid, plan, u0
+
+
+@pytest.mark.parametrize("extra", VARIANTS, ids=["default", "state-units", "subsets", "no-inputs-deep"])
+def test_the_drive_is_the_right_hand_side(user_project: Path, monkeypatch: pytest.MonkeyPatch, extra: list[str]) -> None:
+    monkeypatch.chdir(user_project)
+    _, problem, ref, hybrid, plan, u0 = _setup(user_project, extra)
+    assert drivable(hybrid) and hybrid.spec.estimated == ["damper.c"]
+    params_seg = ref.batch.params[plan.exp_index]
+    box = hybrid.spec.box(BOX_MARGIN, problem.dtype)
+
+    def grads(fast: bool) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        hybrid.zero_grad(set_to_none=True)
+        p = hybrid.parameters_for(params_seg)
+        if fast:
+            rhs, drives = hybrid_drive(hybrid, p, plan.x_half)
+            traj = rk4_segments(rhs, u0, plan, box, drives)
+        else:
+            traj = rk4_segments(hybrid.rhs(p), u0, plan, box)
+        (traj.pow(2).sum() + traj[-1, :, 0].sum()).backward()
+        return traj.detach(), [q.grad.clone() for q in hybrid.parameters()]
+
+    slow_traj, slow_grads = grads(False)
+    fast_traj, fast_grads = grads(True)
+    assert float((slow_traj - problem.compiled.bind(params_seg)(u0, plan.x_half[0])[None]).abs().max()) > 0
+    torch.testing.assert_close(fast_traj, slow_traj, rtol=1e-10, atol=1e-12)
+    assert len(fast_grads) == len(slow_grads) >= 4
+    for a, b in zip(fast_grads, slow_grads):
+        assert float(b.abs().max()) > 0  # every network weight and the estimate get a gradient
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)
+
+
+def test_the_stack_drive_is_the_stack_right_hand_side(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Three models of different depths and activations in one stack: the drive's solve equals the
+    plain stacked right-hand side's, trajectories and gradients."""
+    from physmend.ude.stack import _Stack
+    from physmend.ude.stack_members import _prepare
+
+    monkeypatch.chdir(user_project)
+    trials = [["seed=1", "ude.width=8", "ude.depth=1", "ude.activation=tanh"],
+              ["seed=2", "ude.width=16", "ude.depth=2", "ude.activation=softplus"],
+              ["seed=3", "ude.width=12", "ude.depth=3", "ude.activation=gelu"]]
+    cfgs = [compose([*BASE, *t], user_config_dir=user_project / "my_conf") for t in trials]
+    problem = load_problem(cfgs[0])
+    ref = reference(problem, cfgs[0])
+    cfgs = [resolve_times(c, problem, ref) for c in cfgs]
+    plan = plan_shooting(problem, ref.batch, cfgs[0])
+    stack = _Stack([_prepare(c, problem, ref, plan, i, warm=False) for i, c in enumerate(cfgs)], problem, ref, plan, cfgs[0])
+    with torch.no_grad():
+        for w in stack.net.weights:
+            w.add_(0.3 * torch.randn_like(w))
+    m, plan = stack.size, stack.plan_rows
+    s, n = stack.seg0.shape[1:]
+    p = stack._parameters_for(stack.params_seg, stack.est_raw, m)
+    u0 = stack.seg0.reshape(m * s, n)
+
+    def grads(fast: bool) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        for q, *_ in stack.params:
+            q.grad = None
+        drive = stack._drive(stack.net, m, p, plan.x_half) if fast else None
+        if fast:
+            assert drive is not None
+            traj = rk4_segments(drive[0], u0, plan, stack.box, drive[1])
+        else:
+            traj = rk4_segments(stack._rhs(stack.net, m, p), u0, plan, stack.box)
+        traj.pow(2).sum().backward(retain_graph=True)
+        return traj.detach(), [q.grad.clone() for q, *_ in stack.params[:-1] if q.grad is not None]
+
+    slow_traj, slow_grads = grads(False)
+    fast_traj, fast_grads = grads(True)
+    torch.testing.assert_close(fast_traj, slow_traj, rtol=1e-10, atol=1e-12)
+    assert len(fast_grads) == len(slow_grads) == len(stack.params) - 1
+    for a, b in zip(fast_grads, slow_grads):
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)

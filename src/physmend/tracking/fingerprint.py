@@ -13,6 +13,8 @@ physmend) is compared by configuration only.
 from __future__ import annotations
 
 import sys
+import tempfile
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -55,9 +57,8 @@ def check_same_model(store: Store, run: Any, cfg: DictConfig) -> None:
     if theirs != mine.structure:
         what = ""
         try:
-            from physmend.tracking.runs import download_artifact
-
-            text = download_artifact(store, run_id, STRUCTURE_FILE).read_text()
+            with tempfile.TemporaryDirectory(prefix="physmend-") as tmp:
+                text = Path(store.client.download_artifacts(run_id, STRUCTURE_FILE, tmp)).read_text()
             what = difference(text, mine.text)
         except Exception:  # noqa: BLE001 - the hash alone says it: the description is a courtesy
             what = ""

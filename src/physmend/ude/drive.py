@@ -7,7 +7,8 @@ the solve. So the physics' drive ``B·x + c`` and the network's first layer appl
 parameter features (its normalisation folded into the weights) are computed for all half steps in one
 product each; an evaluation then costs one batched product for the physics and one per layer for the
 network. The function is :meth:`HybridModel.rhs`'s, to rounding; small ODEs are dominated by
-per-operation overhead, so a third of the operations is most of the time saved.
+per-operation overhead (the cargo box's training solve with its backward pass: 81 k → 56 k
+operations, 0.143 → 0.097 s).
 
 Shapes: ``p (S, n_params)`` per segment, ``xs (H, S, m)`` inputs at the ``H = 2K+1`` half steps,
 states ``u (S, n)``; drives ``physics (H, S, n)``, ``first (H, S, h₁)``.

@@ -245,7 +245,7 @@ class _Stack:
         u0 = torch.where(self.pinned[None], self.fixed_first[None],
                          torch.clamp(self.seg0 + self.free * self.state_scale, self.lo, self.hi))
         u0 = u0.reshape(m * s, n)
-        fast = self._drive(self.net, m, p, plan.x_half)  # the same function, a third of the operations
+        fast = self._drive(self.net, m, p, plan.x_half)  # the same function, fewer operations
         if fast is not None:
             traj = rk4_segments(fast[0], u0, plan, self.box, fast[1])  # (K+1, M·S, n)
         else:

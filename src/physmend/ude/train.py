@@ -24,6 +24,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.ude.artifacts import artifacts_of, fit_figures
+from physmend.ude.drive import drivable, hybrid_drive
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import _evaluate, checkpoint_problem
 from physmend.ude.outcome import TrainResult, TrainingDiverged
@@ -137,15 +138,13 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
             report(epoch, row)
         return patience > 0 and since_best >= patience
 
-    from physmend.ude.drive import drivable, hybrid_drive
-
     fast = drivable(hybrid)
 
     def objective() -> tuple[torch.Tensor, torch.Tensor]:
         """The multiple-shooting loss of the current network, segment starts and estimates."""
         p = hybrid.parameters_for(params_seg)
         u0 = torch.where(pinned, fixed_first, torch.clamp(seg0 + free * state_scale, lo, hi))
-        if fast:  # the same function, a third of the operations (physmend.ude.drive)
+        if fast:  # the same function with fewer operations per evaluation (physmend.ude.drive)
             rhs, drives = hybrid_drive(hybrid, p, plan.x_half)
             traj = rk4_segments(rhs, u0, plan, box, drives)  # (K+1, S, n)
         else:

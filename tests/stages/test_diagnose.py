@@ -74,7 +74,8 @@ def test_bad_override_and_unknown_model_file_are_clear_errors(user_project: Path
     monkeypatch.chdir(user_project)
     rc = main(["diagnose", "--config-dir", str(user_project / "my_conf"), "data=no_such_data"])
     err = capsys.readouterr().err
-    assert rc == 2 and "data/no_such_data" in err
+    assert rc == 2 and "data=no_such_data names no option of config group 'data'" in err and "oscillator" in err
+    assert len(err.strip().splitlines()) == 1
     rc = main(["diagnose", "model.builder=/nowhere/model.py:build"])
     err = capsys.readouterr().err
     assert rc == 2 and "/nowhere/model.py" in err and "does not exist" in err

@@ -57,17 +57,37 @@ def split_first_layer(weight: torch.Tensor, bias: torch.Tensor, mean: torch.Tens
     return w[..., :n_states], w[..., n_states:n_states + n_inputs], w[..., n_states + n_inputs:], b
 
 
+def physics_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``A(p) (S, n, n)`` and the drive ``B(p)·x + c(p)`` at every half step ``(H, S, n)``."""
+    bound = hybrid.compiled.bind(p)
+    assert isinstance(bound, BoundRhs)
+    physics = bound.c.expand(xs.shape[0], *bound.c.shape)
+    if hybrid.compiled.input_names:
+        physics = physics + torch.einsum("sij,hsj->hsi", bound.B, xs)
+    return bound.A, physics
+
+
+def columns(hybrid: HybridModel) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The state columns the network reads and the corrected columns (None: all of them, in order)."""
+    n = len(hybrid.compiled.state_names)
+    reads = None if hybrid._all_states else torch.tensor(hybrid.state_idx, dtype=torch.long)
+    idx = hybrid.corrected_idx
+    return reads, None if idx == list(range(n)) else torch.tensor(idx, dtype=torch.long)
+
+
+def with_physics(u: torch.Tensor, d: torch.Tensor, A: torch.Tensor, corr: torch.Tensor,
+                 index: torch.Tensor | None) -> torch.Tensor:
+    """``A·u + d`` plus the corrections ``corr`` in the columns ``index`` (None: every column)."""
+    du = torch.baddbmm(d.unsqueeze(-1), A, u.unsqueeze(-1)).squeeze(-1)
+    return du + corr if index is None else du.index_add(-1, index, corr)
+
+
 def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor
                  ) -> tuple[Callable[[torch.Tensor, tuple[torch.Tensor, torch.Tensor]], torch.Tensor], Drives]:
     """``f(u, drives[k]) -> du/dt`` and the drives of a solve over the half-step inputs ``xs``.
 
     Call only where :func:`drivable` holds. Gradients reach the network, ``p`` and the estimates."""
-    bound = hybrid.compiled.bind(p)
-    assert isinstance(bound, BoundRhs)
-    n = len(hybrid.compiled.state_names)
-    physics = bound.c.expand(xs.shape[0], *bound.c.shape)
-    if hybrid.compiled.input_names:
-        physics = physics + torch.einsum("sij,hsj->hsi", bound.B, xs)
+    A, physics = physics_drive(hybrid, p, xs)
     layers = list(hybrid.net)
     first = layers[0]
     assert isinstance(first, nn.Linear)
@@ -84,18 +104,13 @@ def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor
     gain = hybrid.out_scale * hybrid.out_mask
     if hybrid.coefficients is not None:
         gain = gain / hybrid.equation_coefficients(p)  # (S, k)
-    A = bound.A
-    state_idx = None if hybrid._all_states else torch.tensor(hybrid.state_idx, dtype=torch.long)
-    idx = hybrid.corrected_idx
-    index = None if idx == list(range(n)) else torch.tensor(idx, dtype=torch.long)
+    state_idx, index = columns(hybrid)
 
     def f(u: torch.Tensor, drive: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
         d, h = drive
         h = torch.addmm(h, u if state_idx is None else u[:, state_idx], wu_t)
         for layer in rest:
             h = torch.addmm(layer[0], h, layer[1]) if isinstance(layer, tuple) else layer(h)
-        du = torch.baddbmm(d.unsqueeze(-1), A, u.unsqueeze(-1)).squeeze(-1)
-        corr = h * gain
-        return du + corr if index is None else du.index_add(-1, index, corr)
+        return with_physics(u, d, A, h * gain, index)
 
     return f, Drives(physics, pre)

@@ -18,7 +18,7 @@ import torch
 from physmend.problem import Problem
 from physmend.simulate.initial import estimate_initial
 from physmend.simulate import Batch, make_batch
-from physmend.ude.drive import Drives, drivable, split_first_layer
+from physmend.ude.drive import Drives, columns, drivable, physics_drive, split_first_layer, with_physics
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec
 from physmend.ude.stack_net import _Net, _pad_networks, _write_back
 from physmend.ude.stack_plan import _plan_key, _time_grid_parts
@@ -203,11 +203,7 @@ class _Stack:
         h = self.template
         if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
             return None
-        bound = self.problem.compiled.bind(p)
-        n = len(self.problem.compiled.state_names)
-        physics = bound.c.expand(xs.shape[0], *bound.c.shape)
-        if self.problem.compiled.input_names:
-            physics = physics + torch.einsum("sij,hsj->hsi", bound.B, xs)
+        A, physics = physics_drive(h, p, xs)
         rows = p.shape[0]
         r = rows // m
         wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
@@ -220,19 +216,13 @@ class _Stack:
         wu_t = wu.transpose(1, 2)  # (M, n_in_states, b)
         coef = self._coef(p)
         inv = None if coef is None else coef.reciprocal()
-        A = bound.A
-        state_idx = None if h._all_states else torch.tensor(h.state_idx, dtype=torch.long)
-        idx = h.corrected_idx
-        index = None if idx == list(range(n)) else torch.tensor(idx, dtype=torch.long)
+        state_idx, index = columns(h)
 
         def f(u: torch.Tensor, drive: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
             d, first = drive
             us = u if state_idx is None else u[:, state_idx]
             corr = net(None, torch.baddbmm(first, us.reshape(m, r, -1), wu_t)).reshape(rows, -1)
-            if inv is not None:
-                corr = corr * inv
-            du = torch.baddbmm(d.unsqueeze(-1), A, u.unsqueeze(-1)).squeeze(-1)
-            return du + corr if index is None else du.index_add(-1, index, corr)
+            return with_physics(u, d, A, corr if inv is None else corr * inv, index)
 
         return f, Drives(physics, pre.reshape(xs.shape[0], m, r, -1))
 

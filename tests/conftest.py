@@ -5,6 +5,7 @@ lacks. Proves nothing in the pipeline is cargo-box specific."""
 from __future__ import annotations
 
 import textwrap
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -88,3 +89,14 @@ def user_project(tmp_path: Path) -> Path:
         "experiments:\n" + "".join(experiments)
     )
     return tmp_path
+
+
+@pytest.fixture
+def reset_mlflow() -> Iterator[None]:
+    """After the test: no MLflow run left active, the tracking URI back to MLflow's default."""
+    yield
+    import mlflow
+
+    while mlflow.active_run() is not None:
+        mlflow.end_run()
+    mlflow.set_tracking_uri(None)

@@ -19,14 +19,7 @@ TINY = ["model=oscillator", "data=oscillator", "train.epochs=2", "train.eval_eve
         "sweep.progress=false", "sweep.space=small", "sweep.n_trials=1"]
 
 
-@pytest.fixture(autouse=True)
-def _reset_mlflow() -> Any:
-    yield
-    import mlflow
-
-    while mlflow.active_run() is not None:
-        mlflow.end_run()
-    mlflow.set_tracking_uri(None)
+pytestmark = pytest.mark.usefixtures("reset_mlflow")  # tests/conftest.py
 
 
 @pytest.fixture

@@ -32,14 +32,7 @@ TINY = [
 STUDY = "oscillator-oscillator-small"
 
 
-@pytest.fixture(autouse=True)
-def _reset_mlflow() -> Any:
-    yield
-    import mlflow
-
-    while mlflow.active_run() is not None:
-        mlflow.end_run()
-    mlflow.set_tracking_uri(None)
+pytestmark = pytest.mark.usefixtures("reset_mlflow")  # tests/conftest.py
 
 
 def sweep_args(project: Path, *extra: str) -> list[str]:

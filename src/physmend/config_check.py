@@ -47,13 +47,15 @@ SWITCH_OR_LIST = ("ude.inputs.states", "ude.inputs.inputs")
 RANGES: dict[str, tuple[float, float]] = {
     **{key: (1, math.inf) for key in (
         "train.epochs", "train.eval_every", "train.segment_samples", "train.warm_window_samples",
-        "ude.width", "diagnose.n_windows", "diagnose.smooth_samples", "mask.max_k", "sensitivity.top_k",
+        "ude.width", "diagnose.n_windows", "diagnose.smooth_samples", "mask.max_k", "mask.retrain_epochs", "sensitivity.top_k",
         "sensitivity.max_rows", "symbolic.window_samples", "sweep.n_trials", "sweep.group", "sweep.workers",
         "sweep.heartbeat_interval", "sweep.stale_after", "discover.n_trials", "discover.group", "threads")},
     "diagnose.window_fraction": (ABOVE_ZERO, 1.0),
     "sensitivity.group_r": (ABOVE_ZERO, 1.0),
     "symbolic.canonical_r2": (ABOVE_ZERO, 1.0),
     "mask.tolerance": (0.0, math.inf),
+    "mask.retrain_fit_gain": (0.0, 0.5),
+    "train.patience_fit_gain": (0.0, 0.5),
     "train.continuity_weight": (0.0, math.inf),
     "train.restarts": (0, math.inf),
     "train.polish": (0.0, math.inf),

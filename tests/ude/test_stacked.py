@@ -9,7 +9,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from physmend.config import compose
+from physmend.config import ConfigError, compose
 from physmend.problem import load_problem
 from physmend.ude import TrainingDiverged, TrainResult, UDEConfigError, evaluate, load_hybrid, train
 from physmend.ude.stacked import _prepare, _Stack, stack_key, train_stack
@@ -285,3 +285,32 @@ def test_shared_settings_must_agree(short_project: Path, monkeypatch: pytest.Mon
         train_stack([a, e], None)  # type: ignore[arg-type]
     with pytest.raises(UDEConfigError, match=r"final_eval must be 'own' or 'batched', but got 'best'"):
         train_stack([a], None, final_eval="best")  # type: ignore[arg-type]
+
+
+def test_patience_waits_while_the_training_fit_improves_alone_and_stacked(short_project: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """``train.patience_fit_gain``: an evaluation that lowers the training RMSE by that share counts
+    as progress, so training goes on where validation alone would have stopped it; the best
+    checkpoint is still the one that validates best; a stack stops each model where it alone stops."""
+    monkeypatch.chdir(short_project)
+    over = ["train.epochs=24", "train.patience=1", *TRIALS[1], "train.lr=0.05"]
+    plain = train(_cfg(short_project, *over), load_problem(_cfg(short_project, *over)))
+    cfg = _cfg(short_project, *over, "train.patience_fit_gain=1e-6")
+    waits = train(cfg, load_problem(cfg))
+    seen = [r["epoch"] for r in plain.history]
+    assert seen[-1] < 24, f"validation alone should stop this training early: {plain.history}"
+    longer = [r["epoch"] for r in waits.history]
+    assert longer[: len(seen)] == seen and len(longer) > len(seen), (seen, longer)
+    # where validation alone stopped, the training fit had improved: that is why it went on
+    stop = waits.history[len(seen) - 1]
+    assert stop["val.rmse"] > min(r["val.rmse"] for r in waits.history[: len(seen) - 1])
+    assert stop["train.rmse"] < min(r["train.rmse"] for r in waits.history[: len(seen) - 1])
+    assert waits.val_rmse == pytest.approx(min(r["val.rmse"] for r in waits.history), rel=1e-6)
+    assert waits.val_rmse <= plain.val_rmse * (1 + 1e-6)
+    stacked = train_stack([cfg, _cfg(short_project, *over, "train.patience_fit_gain=1e-6", "seed=5")],
+                          load_problem(cfg))
+    assert [r["epoch"] for r in stacked[0].history] == longer
+    with pytest.raises(ConfigError, match=r"train.patience_fit_gain must be a number in \[0, 0.5\], but got 0.9"):
+        _cfg(short_project, "train.patience_fit_gain=0.9")  # refused when the configuration is composed
+    with pytest.raises(ConfigError, match=r"mask.retrain_epochs must be a whole number ≥ 1, but got 0"):
+        _cfg(short_project, "mask.retrain_epochs=0")

@@ -108,12 +108,52 @@ def _plot(ranking: list[tuple[str, float]], by_k: list[tuple[int, float]], full:
     return fig
 
 
+def stuck_at_warm_start(result: Any) -> bool:
+    """Whether a retraining's best checkpoint is its warm start (epoch 0): its training never
+    validated better than the derivative-matching fit it started from."""
+    if isinstance(result, BaseException) or not getattr(result, "history", None):
+        return False
+    history = result.history
+    return len(history) > 1 and history[0]["epoch"] == 0 and min(history, key=lambda r: r["val.rmse"]) is history[0]
+
+
+def longer_settings(work: Any, mc: Any) -> list[str]:
+    """Overrides (dotlist) for training again a retraining stuck at its warm start
+    (:func:`stuck_at_warm_start`): ``train.epochs`` × ``mask.retrain_epochs`` with as many L-BFGS
+    polish iterations as before, and ``train.patience_fit_gain`` = ``mask.retrain_fit_gain``.
+
+    A network that leaves a good warm start often fits the validation record worse for a while
+    before it fits everything better; patience that counted validation alone stopped it there, and
+    the cosine schedule had no time left. The retrained network is what every later stage reads
+    and what must carry over to held-out conditions; a sweep's trials only need to be ranked."""
+    factor, gain = int(mc.get("retrain_epochs", 1)), float(mc.get("retrain_fit_gain", 0.0))  # ranges: config_check
+    polish = float(work.train.get("polish", 0.0)) / factor
+    return [f"train.epochs={int(work.train.epochs) * factor}", f"train.patience_fit_gain={gain!r}",
+            f"train.polish={polish!r}"]
+
+
+def retrain_sets(work: Any, problem: Any, todo: list[list[str]], mc: Any, train: Any) -> tuple[list[Any], list[int]]:
+    """Each set of ``todo`` retrained (side by side); those stuck at their warm start trained again
+    with :func:`longer_settings`, the longer run kept where it validates better. Returns the results
+    and the positions trained again."""
+    from physmend.stages.mask_retrain import retrain_all, workers
+
+    n = workers(mc.get("workers", "auto"))
+    done = list(retrain_all(work, problem, todo, train, n))
+    again = [i for i, r in enumerate(done) if stuck_at_warm_start(r)] if int(mc.get("retrain_epochs", 1)) > 1 else []
+    if again:
+        longer = OmegaConf.merge(work, OmegaConf.from_dotlist(longer_settings(work, mc)))
+        for i, r in zip(again, retrain_all(longer, problem, [todo[i] for i in again], train, n)):
+            if not isinstance(r, BaseException) and r.val_rmse < done[i].val_rmse:
+                done[i] = r
+    return done, again
+
+
 def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run the mask stage on a trial (default: the current selection); returns the new run ID."""
     import matplotlib.pyplot as plt
 
     from physmend.stages.common import load_source, log_artifacts, log_training, merged, resolve
-    from physmend.stages.mask_retrain import retrain_all, workers
     from physmend.tracking import TrackingError, open_store, stage_run
     from physmend.ude import TrainingDiverged, evaluate, train
     from physmend.ude.analysis import rank_corrections, training_trajectories
@@ -155,6 +195,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     result = None
     winner: Any = None  # the candidate kept (retrained or the source network), for the printout
     tried: list[tuple[list[str], Any]] = []
+    longer: list[list[str]] = []  # sets trained again, longer (their first training stayed at its warm start)
     if bool(mc.retrain):
         work = OmegaConf.merge(work, OmegaConf.from_dotlist([str(o) for o in mc.train_overrides]))
         measured = {problem.model.state_names[i] for _, i in measured_states(problem)}
@@ -163,7 +204,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         # (same configuration, same seed): it stands for itself
         same = sorted(kept) == sorted(hybrid.spec.corrected) and not list(mc.train_overrides)
         todo = [names for names in sets if not (same and names is kept)]
-        done = iter(retrain_all(work, problem, todo, train, workers(mc.get("workers", "auto"))))
+        results, again = retrain_sets(work, problem, todo, mc, train)
+        longer = [todo[i] for i in again]
+        done = iter(results)
         tried = [(names, SourceNetwork(full) if same and names is kept else next(done)) for names in sets]
         masked = dict(by_k).get(len(kept))
         if not same and masked is not None and math.isfinite(masked):
@@ -229,6 +272,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                       "a hidden state's equation may explain the data better):"]
         lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}"
                   + (" (the source network masked to it, not retrained)" if isinstance(r, SourceNetwork) and not own_set(names) else "")
+                  + (f" (trained again with {int(mc.retrain_epochs)}× the epochs: its first training never validated "
+                     "better than its warm start)" if names in longer and not isinstance(r, SourceNetwork) else "")
                   + ("  <- kept" if r is winner else "") for names, r in tried]
     lines += [f"Kept k = {k}: {', '.join(kept_in_order)} (tolerance {float(mc.tolerance):.0%})."]
     if result is None and bool(mc.retrain) and own:

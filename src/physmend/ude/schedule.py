@@ -48,6 +48,24 @@ def restarts(tc: Any) -> int:
     return n
 
 
+def fit_gain(tc: Any) -> float:
+    """``train.patience_fit_gain``: the share by which an evaluation must lower the best training
+    RMSE so far to count as progress for patience too (0: only validation counts)."""
+    gain = float(tc.get("patience_fit_gain", 0.0))
+    if not 0.0 <= gain <= 0.5:
+        raise UDEConfigError(f"train.patience_fit_gain must be in [0, 0.5], but got {gain:g}")
+    return gain
+
+
+def fit_progressed(train_rmse: float, best_fit: float | None, gain: float) -> bool:
+    """True when a checkpoint's whole-trajectory training RMSE is below ``(1 − gain)`` times the
+    best so far (``best_fit``; None: none yet) and ``gain > 0``: the fit is still improving, so
+    patience waits even while the validation RMSE has not improved (a network leaving its warm start
+    often fits the validation record worse for a while before it fits everything better; the best
+    checkpoint is still the one that validates best)."""
+    return gain > 0 and best_fit is not None and math.isfinite(train_rmse) and train_rmse < (1.0 - gain) * best_fit
+
+
 def cycle_of(epoch: int, epochs: int) -> int:
     """The cycle (0: the first) that epoch ``epoch`` (1-based; 0: the warm start) belongs to."""
     return max(0, epoch - 1) // max(epochs, 1)

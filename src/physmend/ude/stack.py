@@ -43,6 +43,7 @@ class _Member:
     history: list[dict[str, float]] = field(default_factory=list)
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best: int = 0
+    best_fit: float | None = None  # the best whole-trajectory training RMSE so far (train.patience_fit_gain)
     good_cycle: int | None = None  # the training cycle of its first checkpoint that could be simulated
     outcome: BaseException | None = None  # set when the model stops with an error
     failed: TrainingDiverged | None = None  # the last checkpoint whose whole trajectory failed (dropped)

@@ -62,7 +62,7 @@ from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.polish import Polisher, fit_at, polish_iterations, worth_polishing
 from physmend.ude.reference import Reference, _sim_opts, _train_mask
-from physmend.ude.schedule import _lr_schedule, cycle_of, restarts, stops_at
+from physmend.ude.schedule import _lr_schedule, cycle_of, fit_gain, fit_progressed, restarts, stops_at
 from physmend.ude.shooting import BOX_MARGIN, Shooting, _output_spread, noise_fit, pinned_starts, segments_finite
 from physmend.ude.warmstart import Forced, recall_derived, remember_derived
 
@@ -82,6 +82,7 @@ SHARED_KEYS: tuple[str, ...] = (
     "train.schedule",
     "train.eval_every",
     "train.patience",
+    "train.patience_fit_gain",
     "train.continuity_weight",
     "train.estimate_parameters",
     "ude.corrected",
@@ -226,6 +227,7 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
     epochs = int(tc.epochs)
     eval_every = max(1, int(tc.eval_every))
     patience = int(tc.patience)
+    gain = fit_gain(tc)
 
     def checkpoint(positions: list[int], epoch: int, loss: torch.Tensor | None, fit: torch.Tensor | None,
                    known: dict[int, dict[str, float]] | None = None) -> None:
@@ -264,9 +266,13 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
             mem.history.append(row)
             if mem.best is None:
                 mem.good_cycle = cycle_of(epoch, epochs)
+            fitting = fit_progressed(metrics["train.rmse"], mem.best_fit, gain)
+            mem.best_fit = metrics["train.rmse"] if mem.best_fit is None else min(mem.best_fit, metrics["train.rmse"])
             if mem.best is None or metrics["val.rmse"] < mem.best[0]:
                 stack.write_back(pos)
                 mem.best = (metrics["val.rmse"], copy.deepcopy(mem.hybrid.state_dict()), metrics)
+                mem.since_best = 0
+            elif fitting:
                 mem.since_best = 0
             else:
                 mem.since_best += 1

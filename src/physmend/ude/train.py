@@ -30,7 +30,7 @@ from physmend.ude.metrics import _evaluate, checkpoint_problem
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.polish import fit_at, polish_iterations, polish_lbfgs, worth_polishing
 from physmend.ude.reference import _sim_opts, _train_mask, reference
-from physmend.ude.schedule import _chain, cycle_of, lr_factor, restarts, stops_at
+from physmend.ude.schedule import _chain, cycle_of, fit_gain, fit_progressed, lr_factor, restarts, stops_at
 from physmend.ude.shooting import _equation_scale, _initial_segments, _output_spread, chained_starts, noise_fit, plan_shooting, rk4_segments
 from physmend.ude.spec import build_spec
 from physmend.ude.warmstart import segment_starts, warm_start
@@ -106,6 +106,8 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     history: list[dict[str, float]] = []
     best: tuple[float, dict[str, Any], dict[str, float]] | None = None
     since_best = 0
+    gain = fit_gain(tc)
+    best_fit: float | None = None  # the best whole-trajectory training RMSE so far (train.patience_fit_gain)
     good_cycle: int | None = None  # the cycle of the first checkpoint that could be simulated
     failed: TrainingDiverged | None = None  # the last checkpoint whose whole trajectory failed
     has_next = plan.next_of >= 0
@@ -114,7 +116,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
 
     def checkpoint(epoch: int, loss: float, fit: float) -> bool:
         """Evaluate whole trajectories, keep the best state; True when patience has run out."""
-        nonlocal best, since_best, failed, good_cycle
+        nonlocal best, since_best, failed, good_cycle, best_fit
         try:
             metrics, _, _ = _evaluate(hybrid, checked, sim)
         except TrainingDiverged as exc:  # not a candidate; training goes on, patience counts it
@@ -129,8 +131,12 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         history.append(row)
         if best is None:
             good_cycle = cycle_of(epoch, epochs)
+        fitting = fit_progressed(metrics["train.rmse"], best_fit, gain)
+        best_fit = metrics["train.rmse"] if best_fit is None else min(best_fit, metrics["train.rmse"])
         if best is None or metrics["val.rmse"] < best[0]:
             best = (metrics["val.rmse"], copy.deepcopy(hybrid.state_dict()), metrics)
+            since_best = 0
+        elif fitting:
             since_best = 0
         else:
             since_best += 1

@@ -195,7 +195,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     result = None
     winner: Any = None  # the candidate kept (retrained or the source network), for the printout
     tried: list[tuple[list[str], Any]] = []
-    longer: list[list[str]] = []  # sets trained again, longer (their first training stayed at its warm start)
+    again_sets: list[list[str]] = []  # sets trained again, longer (their first training stayed at its warm start)
     if bool(mc.retrain):
         work = OmegaConf.merge(work, OmegaConf.from_dotlist([str(o) for o in mc.train_overrides]))
         measured = {problem.model.state_names[i] for _, i in measured_states(problem)}
@@ -205,7 +205,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         same = sorted(kept) == sorted(hybrid.spec.corrected) and not list(mc.train_overrides)
         todo = [names for names in sets if not (same and names is kept)]
         results, again = retrain_sets(work, problem, todo, mc, train)
-        longer = [todo[i] for i in again]
+        again_sets = [todo[i] for i in again]
         done = iter(results)
         tried = [(names, SourceNetwork(full) if same and names is kept else next(done)) for names in sets]
         masked = dict(by_k).get(len(kept))
@@ -272,8 +272,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                       "a hidden state's equation may explain the data better):"]
         lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}"
                   + (" (the source network masked to it, not retrained)" if isinstance(r, SourceNetwork) and not own_set(names) else "")
-                  + (f" (trained again with {int(mc.retrain_epochs)}× the epochs: its first training never validated "
-                     "better than its warm start)" if names in longer and not isinstance(r, SourceNetwork) else "")
+                  + (f" (its first training never validated better than its warm start: trained again with "
+                     f"{int(mc.retrain_epochs)}× the epochs, the better of the two shown)"
+                     if names in again_sets and not isinstance(r, SourceNetwork) else "")
                   + ("  <- kept" if r is winner else "") for names, r in tried]
     lines += [f"Kept k = {k}: {', '.join(kept_in_order)} (tolerance {float(mc.tolerance):.0%})."]
     if result is None and bool(mc.retrain) and own:

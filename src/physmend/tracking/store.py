@@ -121,6 +121,7 @@ def open_store(tracking_cfg: Any) -> Store:
     With an sqlite store, artifacts live in ``mlartifacts/`` beside the database file.
     """
     import mlflow
+    from mlflow.exceptions import MlflowException
     from mlflow.tracking import MlflowClient
 
     uri = str(tracking_cfg.uri)
@@ -146,10 +147,19 @@ def open_store(tracking_cfg: Any) -> Store:
                 artifact_location = _artifact_location(tracking_cfg, uri, db, name)
                 # a classic ML experiment (MLflow 3's UI still chooses its GenAI or model-training view by a
                 # browser setting or the address's workflowType: `physmend ui` prints the runs table's address)
-                exp_id = client.create_experiment(name, artifact_location=artifact_location, tags={
-                    "mlflow.experimentKind": "custom_model_development",
-                    "mlflow.note.content": "physmend: diagnose, sweep trials (val.rmse), mask, sensitivity, symbolic "
-                                           "and propose runs; a sweep's best trial is tagged physmend.best"})
+                try:
+                    exp_id = client.create_experiment(name, artifact_location=artifact_location, tags={
+                        "mlflow.experimentKind": "custom_model_development",
+                        "mlflow.note.content": "physmend: diagnose, sweep trials (val.rmse), mask, sensitivity, "
+                                              "symbolic and propose runs; a sweep's best trial is tagged physmend.best"})
+                except MlflowException as exc:
+                    # workers on other machines starting together against one server (no shared folder to
+                    # lock): another created it between the lookup and the creation — use theirs
+                    exists = "RESOURCE_ALREADY_EXISTS" in f"{exc.error_code} {exc}"
+                    exp = client.get_experiment_by_name(name) if exists else None
+                    if exp is None:
+                        raise
+                    exp_id = exp.experiment_id
     except TrackingError:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to open the store is one line naming it

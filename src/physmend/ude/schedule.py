@@ -57,13 +57,15 @@ def fit_gain(tc: Any) -> float:
     return gain
 
 
-def fit_progressed(train_rmse: float, best_fit: float | None, gain: float) -> bool:
-    """True when a checkpoint's whole-trajectory training RMSE is below ``(1 − gain)`` times the
-    best so far (``best_fit``; None: none yet) and ``gain > 0``: the fit is still improving, so
-    patience waits even while the validation RMSE has not improved (a network leaving its warm start
-    often fits the validation record worse for a while before it fits everything better; the best
-    checkpoint is still the one that validates best)."""
-    return gain > 0 and best_fit is not None and math.isfinite(train_rmse) and train_rmse < (1.0 - gain) * best_fit
+def fit_progressed(train_rmse: float, best_fit: float | None, gain: float) -> tuple[bool, float]:
+    """``(progressed, best)``: whether a checkpoint's whole-trajectory training RMSE is below
+    ``(1 − gain)`` times the best so far (``best_fit``; None: none yet) with ``gain > 0``, and the
+    best training RMSE including this one. While the fit still improves, patience waits even where
+    the validation RMSE has not improved (a network leaving its warm start often fits the
+    validation record worse for a while before it fits everything better; the best checkpoint is
+    still the one that validates best)."""
+    progressed = gain > 0 and best_fit is not None and math.isfinite(train_rmse) and train_rmse < (1.0 - gain) * best_fit
+    return progressed, train_rmse if best_fit is None else min(best_fit, train_rmse)
 
 
 def cycle_of(epoch: int, epochs: int) -> int:

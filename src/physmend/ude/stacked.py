@@ -266,8 +266,7 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
             mem.history.append(row)
             if mem.best is None:
                 mem.good_cycle = cycle_of(epoch, epochs)
-            fitting = fit_progressed(metrics["train.rmse"], mem.best_fit, gain)
-            mem.best_fit = metrics["train.rmse"] if mem.best_fit is None else min(mem.best_fit, metrics["train.rmse"])
+            fitting, mem.best_fit = fit_progressed(metrics["train.rmse"], mem.best_fit, gain)
             if mem.best is None or metrics["val.rmse"] < mem.best[0]:
                 stack.write_back(pos)
                 mem.best = (metrics["val.rmse"], copy.deepcopy(mem.hybrid.state_dict()), metrics)

@@ -131,8 +131,7 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         history.append(row)
         if best is None:
             good_cycle = cycle_of(epoch, epochs)
-        fitting = fit_progressed(metrics["train.rmse"], best_fit, gain)
-        best_fit = metrics["train.rmse"] if best_fit is None else min(best_fit, metrics["train.rmse"])
+        fitting, best_fit = fit_progressed(metrics["train.rmse"], best_fit, gain)
         if best is None or metrics["val.rmse"] < best[0]:
             best = (metrics["val.rmse"], copy.deepcopy(hybrid.state_dict()), metrics)
             since_best = 0

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from physmend.modeling.compile import CompiledModel
-from physmend.simulate.core import OWN_METHODS, odeint
+from physmend.simulate.core import CLOCK_METHODS, OWN_METHODS, odeint
 from physmend.simulate.inputs import PiecewiseLinear, from_channels
 
 
@@ -85,6 +85,19 @@ def make_batch(experiments: Sequence, model: CompiledModel, dtype: torch.dtype =
     )
 
 
+def own_stops(batch: Batch) -> list[torch.Tensor]:
+    """Per experiment, the times (s) a solver on its own clock ends steps on: its rows with a
+    measurement and the kinks of its own inputs (:meth:`PiecewiseLinear.kinks`)."""
+    measured = torch.isfinite(batch.obs).any(-1)  # (T, B)
+    kinks = batch.inputs.kinks()
+    return [torch.unique(torch.cat([batch.t[measured[:, b]], kinks[b].to(batch.t.dtype)])) for b in range(batch.size)]
+
+
+def inputs_at(batch: Batch, t: torch.Tensor) -> torch.Tensor:
+    """The inputs ``(B, m)`` at one time ``t`` (s, scalar), or each element at its own ``t (B,)``."""
+    return batch.inputs.each(t) if isinstance(t, torch.Tensor) and t.ndim == 1 else batch.inputs(t)
+
+
 @dataclass
 class Trajectories:
     """Simulated trajectories on ``batch.t``: ``states (T, B, n_states)``, ``outputs (T, B, n_outputs)``,
@@ -115,10 +128,12 @@ def simulate_batch(
     if inner.numel():  # input kinks: step onto them rather than across them
         options.setdefault("tstops" if method in OWN_METHODS else "step_t", inner)
 
+    if method in CLOCK_METHODS and batch.size > 1:
+        options.setdefault("clocks", own_stops(batch))
     rhs = model.bind(p)
 
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return rhs(u, batch.inputs(t))
+        return rhs(u, inputs_at(batch, t))
 
     states = odeint(
         f, batch.u0 if u0 is None else u0, batch.t, method=method, rtol=rtol, atol=atol, options=options, names=batch.ids

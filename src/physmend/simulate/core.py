@@ -23,6 +23,11 @@ OWN_METHODS: dict[str, Callable[..., torch.Tensor]] = {
 }
 
 
+#: methods that can give every batch element its own clock (``options["clocks"]``: per element, the
+#: times its steps end on; ``f`` then gets ``t (B,)``, see :mod:`physmend.simulate.clocks`)
+CLOCK_METHODS = ("rodas3", "rodas4", "rodas4p2")
+
+
 def available_methods() -> list[str]:
     from torchdiffeq._impl.odeint import SOLVERS
 
@@ -53,7 +58,9 @@ def odeint(
             torchdiffeq method (``"dopri5"``, ``"bosh3"``, ``"rk4"`` …).
         rtol, atol: tolerances of adaptive methods (atol in state units).
         options: extra solver options (torchdiffeq ``options``; for physmend's own methods:
-            ``first_step``, ``max_steps``, ``tstops``, ``jacobian``).
+            ``first_step``, ``max_steps``, ``tstops``, ``jacobian``; for :data:`CLOCK_METHODS`
+            ``clocks`` as well, where ``f`` and ``jacobian`` accept ``t (B,)``; other methods
+            ignore it).
         names: a name per batch element, used in error messages.
 
     Raises:
@@ -61,6 +68,12 @@ def odeint(
     """
     names = names or [str(i) for i in range(u0.shape[0])]
     options = dict(options or {})
+    clocks = options.pop("clocks", None)
+    if clocks is not None and method in CLOCK_METHODS:
+        from physmend.simulate.clocks import odeint_rodas_each
+
+        options.pop("tstops", None)
+        return odeint_rodas_each(f, u0, t, clocks, rtol=rtol, atol=atol, names=names, tableau=method, **options)
     if method in OWN_METHODS:
         return OWN_METHODS[method](f, u0, t, rtol=rtol, atol=atol, names=names, **options)
     from torchdiffeq import odeint as tde_odeint

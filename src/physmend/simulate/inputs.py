@@ -25,6 +25,7 @@ class PiecewiseLinear:
         self.knots = knots
         self.values = values
         self._knot_list = knots.tolist()  # scalar calls (one per solver stage) find their interval by bisection
+        self._rows = torch.arange(values.shape[0])
         k = knots.shape[0]
         if k > 1:
             dt = (knots[1:] - knots[:-1]).clamp_min(1e-300)
@@ -83,6 +84,33 @@ class PiecewiseLinear:
         if self.knots.shape[0] > 1:
             base = base + self.slopes[rows, idx] * (tc - self.knots[idx])[..., None]
         return base
+
+    def each(self, t: torch.Tensor) -> torch.Tensor:
+        """Each batch element at its own time ``t (B,)`` (s): ``(B, n)`` (a solver with a clock per
+        element, :mod:`physmend.simulate.clocks`)."""
+        B, K = self.values.shape[0], len(self._knot_list)
+        if t.shape != (B,) or t.requires_grad or K < 2 or self.values.shape[-1] == 0:
+            return self.at_each(t[None])[0]
+        tc = t.clamp(self._knot_list[0], self._knot_list[-1])
+        i = (torch.searchsorted(self.knots, tc, right=True) - 1).clamp_(0, K - 2)
+        rows = self._rows if self._rows.shape[0] == B else torch.arange(B)
+        return torch.addcmul(self.values[rows, i], self.slopes[rows, i], (tc - self.knots[i])[:, None])
+
+    def kinks(self) -> list[torch.Tensor]:
+        """Per batch element, the knots (s) where its own interpolant bends: ``B`` tensors.
+
+        The knots are shared by the batch (the union of every element's sample times); a knot that
+        is not one of an element's own samples lies on a straight piece of its interpolant (equal
+        slopes on both sides, to rounding), so a solver need not end a step there.
+        """
+        B = self.values.shape[0]
+        if self.knots.shape[0] < 3 or self.values.shape[-1] == 0:
+            return [self.knots[1:-1].clone() for _ in range(B)]
+        jump = (self.slopes[:, 1:] - self.slopes[:, :-1]).abs()  # (B, K-2, n): at inner knots
+        scale = self.slopes.abs().amax(1, keepdim=True)  # (B, 1, n)
+        bends = (jump > 1e-9 * scale).any(-1)  # (B, K-2)
+        inner = self.knots[1:-1]
+        return [inner[bends[b]] for b in range(B)]
 
     def select(self, index: Sequence[int] | torch.Tensor) -> "PiecewiseLinear":
         """The same inputs for a subset (or repetition) of batch elements."""

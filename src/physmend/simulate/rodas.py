@@ -227,7 +227,7 @@ def rodas_step(
     f: Rhs,
     t: torch.Tensor,
     u: torch.Tensor,
-    h: float,
+    h: float | torch.Tensor,
     f0: torch.Tensor,
     J: torch.Tensor,
     dfdt: torch.Tensor,
@@ -239,17 +239,19 @@ def rodas_step(
     ``f0 = f(t, u)`` and ``dfdt`` (``(B, n)``, per second) and the Jacobian ``J = df/du (B, n, n)``
     are evaluated at ``(t, u)`` by the caller (they are reused when a step is retried). One LU
     factorisation of ``I/(gamma h) - J`` and a right-hand side per stage at a new point follow
-    (five for the Rodas4 family, two for Rodas3).
+    (five for the Rodas4 family, two for Rodas3). With a clock per element (``t`` and ``h`` both
+    ``(B,)``, :func:`physmend.simulate.clocks.odeint_rodas_each`) each element takes its own step.
     """
     co = coefficients if coefficients is not None and coefficients.tab is tableau else _Coefficients(tableau, u)
     tab = tableau
-    lu, piv = torch.linalg.lu_factor(co.eye / (tab.gamma * h) - J)
+    hv = h[:, None] if isinstance(h, torch.Tensor) else h  # multiplies (B, n)
+    lu, piv = torch.linalg.lu_factor(co.eye / (tab.gamma * (h[:, None, None] if isinstance(h, torch.Tensor) else h)) - J)
     flat = u.numel()
 
     def solve(rhs: torch.Tensor) -> torch.Tensor:
         return torch.linalg.lu_solve(lu, piv, rhs[..., None])[..., 0]
 
-    ks = [solve(f0 + (h * tab.d[0]) * dfdt)]
+    ks = [solve(f0 + (hv * tab.d[0]) * dfdt)]
     points = [u]  # each stage's argument
     values = [f0]  # f there
     for i in range(1, len(tab.c)):
@@ -262,9 +264,9 @@ def rodas_step(
         else:
             points.append(u + mix[0])
             values.append(f(t + tab.c[i] * h, points[i]))
-        rhs = values[i] + mix[1] / h
+        rhs = values[i] + mix[1] / hv
         if tab.d[i] != 0.0:
-            rhs = rhs + (h * tab.d[i]) * dfdt
+            rhs = rhs + (hv * tab.d[i]) * dfdt
         ks.append(solve(rhs))
     return RodasStep(u=u, u_new=points[-1] + ks[-1], err=ks[-1], ks=torch.stack(ks), H=co.H)
 

@@ -15,7 +15,8 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch, odeint
-from physmend.simulate.core import OWN_METHODS
+from physmend.simulate.batch import inputs_at, own_stops
+from physmend.simulate.core import CLOCK_METHODS, OWN_METHODS
 from physmend.simulate.initial import estimate_initial, has_unknown
 
 
@@ -55,12 +56,14 @@ def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], bat
     differences (which cost ``n`` extra right-hand sides per step).
     """
     options = {**_kinks(batch, sim["method"]), **sim["options"]}
+    if sim["method"] in CLOCK_METHODS and batch.size > 1:
+        options.setdefault("clocks", own_stops(batch))  # each experiment steps on its own times only
 
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return rhs(u, batch.inputs(t))
+        return rhs(u, inputs_at(batch, t))
 
     if jac is not None and sim["method"] in OWN_METHODS and "jacobian" not in options:
-        options["jacobian"] = lambda t, u: jac(u, batch.inputs(t))
+        options["jacobian"] = lambda t, u: jac(u, inputs_at(batch, t))
 
     return odeint(f, u0, batch.t, method=sim["method"], rtol=sim["rtol"], atol=sim["atol"], options=options, names=batch.ids)
 

@@ -304,6 +304,12 @@ def load_catalogue(path: str | Path | None = None) -> list[Mechanism]:
     return entries
 
 
+#: classification fits every template (and its second constant on a grid) to at most this many of
+#: the samples, evenly spaced: long records (tens of thousands of rows) would otherwise make the
+#: catalogue's search seconds per formula, for the same ranking
+MAX_SAMPLES = 2000
+
+
 def _samples(expr: sympy.Expr, samples: Mapping[str, Any]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     names = sorted(s.name for s in expr.free_symbols)
     missing = [n for n in names if n not in samples]
@@ -325,7 +331,10 @@ def _samples(expr: sympy.Expr, samples: Mapping[str, Any]) -> tuple[dict[str, np
         ok &= np.isfinite(a)
     if ok.sum() < 2:
         raise MechanismError(f"classification needs at least 2 samples where the formula is finite, but got {int(ok.sum())}")
-    return {k: np.asarray(a[ok], dtype=float) for k, a in arrays.items()}, y[ok]
+    keep = np.flatnonzero(ok)
+    if keep.size > MAX_SAMPLES:  # evenly spaced: a shape is told apart on a few thousand points
+        keep = keep[np.unique(np.linspace(0, keep.size - 1, MAX_SAMPLES).round().astype(int))]
+    return {k: np.asarray(a[keep], dtype=float) for k, a in arrays.items()}, y[keep]
 
 
 def _formula(m: Mechanism, assignment: Mapping[str, str], coefficient: float, k: float | None = None) -> str:

@@ -152,22 +152,56 @@ class BoundRhs:
     """``du/dt`` for fixed parameters ``p (B, n_params)``: call with ``u (..., B, n)``, ``x (..., B, m)``.
 
     Affine rows cost one batched matrix product; the coefficients are computed once here.
-    Gradients flow to ``p`` through the coefficients.
+    Gradients flow to ``p`` through the coefficients. With ``rows (B,)`` (indices into ``p (E,
+    n_params)``) batch element ``b`` has the parameters ``p[rows[b]]``: many segments of a few
+    experiments share a few matrices, and a step is one plain product with all of them (each
+    row keeps its own block) instead of a product per element, whose gradient with respect to the
+    matrices is an outer product per element.
     """
 
-    def __init__(self, split: AffineSplit, p: torch.Tensor) -> None:
+    #: the shared-matrix product does ``E`` times a per-element product's arithmetic: used up to this
+    SHARED_UP_TO = 8
+
+    def __init__(self, split: AffineSplit, p: torch.Tensor, rows: torch.Tensor | None = None) -> None:
         n, m = split.n_states, split.n_inputs
+        self._shared: tuple[torch.Tensor, torch.Tensor | None, torch.Tensor] | None = None
+        if rows is not None:
+            used, rows = torch.unique(rows, return_inverse=True)  # by index, never by value
+            p = p[used]
         flat = split.flat(p)
-        self.A = flat[..., : n * n].reshape(*p.shape[:-1], n, n)
-        self.B = flat[..., n * n : n * n + n * m].reshape(*p.shape[:-1], n, m)
-        self.c = flat[..., n * n + n * m :]
-        self.p = p
+        A = flat[..., : n * n].reshape(*p.shape[:-1], n, n)
+        B = flat[..., n * n : n * n + n * m].reshape(*p.shape[:-1], n, m)
+        c = flat[..., n * n + n * m :]
+        if rows is not None:
+            e = p.shape[0]
+            if e <= self.SHARED_UP_TO:
+                pick = rows.view(-1, 1, 1).expand(-1, 1, n)  # (S, 1, n): each row's block
+                self._shared = (A.transpose(-1, -2).permute(1, 0, 2).reshape(n, e * n),
+                                B.transpose(-1, -2).permute(1, 0, 2).reshape(m, e * n) if m else None, pick)
+            A, B, c, p = A[rows], B[rows], c[rows], p[rows]
+        self.A, self.B, self.c, self.p = A, B, c, p
         self.split = split
 
-    def __call__(self, u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        du = _matvec(self.A, u) + self.c
+    def linear(self, u: torch.Tensor) -> torch.Tensor:
+        """``A·u`` for ``u (..., B, n)``: ``(..., B, n)``."""
+        if self._shared is not None and u.dim() == 2 and u.shape[0] == self.A.shape[0]:
+            at, _, pick = self._shared
+            return (u @ at).view(u.shape[0], -1, u.shape[1]).gather(1, pick).squeeze(1)
+        return _matvec(self.A, u)
+
+    def _affine_part(self, u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        shared = self._shared is not None and u.dim() == 2 and x.dim() == 2 and u.shape[0] == self.A.shape[0]
+        if shared and self._shared[1] is not None:  # A·u + B·x in one product and one pick
+            at, bt, pick = self._shared
+            lin = torch.addmm(u @ at, x, bt)
+            return lin.view(u.shape[0], -1, u.shape[1]).gather(1, pick).squeeze(1) + self.c
+        du = self.linear(u) + self.c
         if self.split.n_inputs:
             du = du + _matvec(self.B, x)
+        return du
+
+    def __call__(self, u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        du = self._affine_part(u, x)
         if self.split.rest is not None:
             su, sx, sp_ = u.shape[:-1], x.shape[:-1], self.p.shape[:-1]
             lead = su if su == sx == sp_ else torch.broadcast_shapes(su, sx, sp_)
@@ -232,11 +266,16 @@ class CompiledModel:
         """Derivatives ``du/dt``, shape ``(..., n_states)`` in state units per second."""
         return self._call(self._rhs, u, x, p)
 
-    def bind(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
-        """``rhs`` with parameters ``p (B, n_params)`` fixed: ``f(u, x) -> du/dt``, fast for affine models."""
+    def bind(self, p: torch.Tensor, rows: torch.Tensor | None = None) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """``rhs`` with parameters ``p (B, n_params)`` fixed: ``f(u, x) -> du/dt``, fast for affine models.
+
+        ``rows (S,)``: batch element ``s`` has the parameters ``p[rows[s]]`` (segments of a few
+        experiments, :class:`BoundRhs`); the same numbers as ``bind(p[rows])``.
+        """
         if self._affine is None:
-            return lambda u, x: self.rhs(u, x, p)
-        return BoundRhs(self._affine, p)
+            pr = p if rows is None else p[rows]
+            return lambda u, x: self.rhs(u, x, pr)
+        return BoundRhs(self._affine, p, rows)
 
     @property
     def affine(self) -> bool:

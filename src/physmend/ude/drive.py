@@ -57,14 +57,16 @@ def split_first_layer(weight: torch.Tensor, bias: torch.Tensor, mean: torch.Tens
     return w[..., :n_states], w[..., n_states:n_states + n_inputs], w[..., n_states + n_inputs:], b
 
 
-def physics_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``A(p) (S, n, n)`` and the drive ``B(p)·x + c(p)`` at every half step ``(H, S, n)``."""
-    bound = hybrid.compiled.bind(p)
+def physics_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: torch.Tensor | None = None
+                  ) -> tuple[Callable[[torch.Tensor], torch.Tensor], torch.Tensor]:
+    """``u -> A(p)·u`` (:meth:`BoundRhs.linear`) and the drive ``B(p)·x + c(p)`` at every half step
+    ``(H, S, n)``; ``rows``: as for :meth:`CompiledModel.bind`."""
+    bound = hybrid.compiled.bind(p, rows)
     assert isinstance(bound, BoundRhs)
     physics = bound.c.expand(xs.shape[0], *bound.c.shape)
     if hybrid.compiled.input_names:
         physics = physics + torch.einsum("sij,hsj->hsi", bound.B, xs)
-    return bound.A, physics
+    return bound.linear, physics
 
 
 def columns(hybrid: HybridModel) -> tuple[torch.Tensor | None, torch.Tensor | None]:
@@ -75,19 +77,23 @@ def columns(hybrid: HybridModel) -> tuple[torch.Tensor | None, torch.Tensor | No
     return reads, None if idx == list(range(n)) else torch.tensor(idx, dtype=torch.long)
 
 
-def with_physics(u: torch.Tensor, d: torch.Tensor, A: torch.Tensor, corr: torch.Tensor,
+def with_physics(u: torch.Tensor, d: torch.Tensor, linear: Callable[[torch.Tensor], torch.Tensor], corr: torch.Tensor,
                  index: torch.Tensor | None) -> torch.Tensor:
-    """``A·u + d`` plus the corrections ``corr`` in the columns ``index`` (None: every column)."""
-    du = torch.baddbmm(d.unsqueeze(-1), A, u.unsqueeze(-1)).squeeze(-1)
+    """``A·u + d`` (``linear(u) = A·u``) plus the corrections ``corr`` in the columns ``index`` (None: every column)."""
+    du = linear(u) + d
     return du + corr if index is None else du.index_add(-1, index, corr)
 
 
-def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor
+def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: torch.Tensor | None = None
                  ) -> tuple[Callable[[torch.Tensor, tuple[torch.Tensor, torch.Tensor]], torch.Tensor], Drives]:
     """``f(u, drives[k]) -> du/dt`` and the drives of a solve over the half-step inputs ``xs``.
 
-    Call only where :func:`drivable` holds. Gradients reach the network, ``p`` and the estimates."""
-    A, physics = physics_drive(hybrid, p, xs)
+    ``rows (S,)``: segment ``s`` has the parameters ``p[rows[s]]`` (``p`` per experiment; the
+    physics then shares one matrix per experiment, :class:`BoundRhs`). Call only where
+    :func:`drivable` holds. Gradients reach the network, ``p`` and the estimates."""
+    A, physics = physics_drive(hybrid, p, xs, rows)
+    if rows is not None:
+        p = p[rows]
     layers = list(hybrid.net)
     first = layers[0]
     assert isinstance(first, nn.Linear)

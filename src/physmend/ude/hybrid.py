@@ -243,14 +243,15 @@ class HybridModel(nn.Module):
         """Mask every correction except those of the states ``names``."""
         self.out_mask = torch.tensor([1.0 if n in names else 0.0 for n in self.spec.corrected], dtype=self.out_mask.dtype)
 
-    def rhs(self, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
-        """``f(u, x) -> du/dt`` of the hybrid for parameters ``p (B, n_params)`` (already estimated)."""
-        physics = self.compiled.bind(p)
+    def rhs(self, p: torch.Tensor, rows: torch.Tensor | None = None) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """``f(u, x) -> du/dt`` of the hybrid for parameters ``p (B, n_params)`` (already estimated);
+        with ``rows (S,)``, element ``s`` has ``p[rows[s]]`` (:meth:`CompiledModel.bind`)."""
+        physics = self.compiled.bind(p, rows)
         idx = self.corrected_idx
         n = len(self.compiled.state_names)
         if not idx:  # nothing corrected: the physics alone (e.g. re-fitting a formula's constants)
             return physics
-        corrections = self.corrector(p)  # a_i(p) and the gains once per solve
+        corrections = self.corrector(p if rows is None else p[rows])  # a_i(p) and the gains once per solve
         if len(idx) == n and idx == list(range(n)):
             return lambda u, x: physics(u, x) + corrections(u, x)
 

@@ -197,14 +197,17 @@ class _Stack:
 
         return f
 
-    def _drive(self, net: _Net, m: int, p: torch.Tensor, xs: torch.Tensor
+    def _drive(self, net: _Net, m: int, p: torch.Tensor, xs: torch.Tensor,
+               shared: tuple[torch.Tensor, torch.Tensor] | None = None
                ) -> tuple[Callable[[torch.Tensor, Any], torch.Tensor], Drives] | None:
         """:meth:`_rhs` with what does not depend on the state computed once for the half-step inputs
-        ``xs (H, m·R, n_inputs)`` (:mod:`physmend.ude.drive`); None where that does not apply."""
+        ``xs (H, m·R, n_inputs)`` (:mod:`physmend.ude.drive`); None where that does not apply.
+        ``shared = (p_small, rows)`` with ``p = p_small[rows]``: the physics keeps one matrix per
+        row of ``p_small`` (:class:`~physmend.modeling.compile.BoundRhs`)."""
         h = self.template
         if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
             return None
-        A, physics = physics_drive(h, p, xs)
+        A, physics = physics_drive(h, p, xs) if shared is None else physics_drive(h, shared[0], xs, shared[1])
         rows = p.shape[0]
         r = rows // m
         wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
@@ -232,11 +235,13 @@ class _Stack:
         """Each model's training loss and fit loss ``(M,)``, as train() computes them for one."""
         m, plan = self.size, self.plan_rows
         s, n = self.seg0.shape[1:]
-        p = self._parameters_for(self.params_seg, self.est_raw, m)  # (M·S, n_params)
+        p_exp = self._parameters_for(self.ref.batch.params, self.est_raw, m)  # (M·E, n_params): per experiment
+        rows = (torch.arange(m)[:, None] * self.ref.batch.size + self.plan.exp_index[None]).flatten()
+        p = p_exp[rows]  # (M·S, n_params)
         u0 = torch.where(self.pinned[None], self.fixed_first[None],
                          torch.clamp(self.seg0 + self.free * self.state_scale, self.lo, self.hi))
         u0 = u0.reshape(m * s, n)
-        fast = self._drive(self.net, m, p, plan.x_half)  # the same function, fewer operations
+        fast = self._drive(self.net, m, p, plan.x_half, (p_exp, rows))  # the same function, fewer operations
         if fast is not None:
             traj = rk4_segments(fast[0], u0, plan, self.box, fast[1])  # (K+1, M·S, n)
         else:

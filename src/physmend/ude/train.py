@@ -147,10 +147,11 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
 
     def objective() -> tuple[torch.Tensor, torch.Tensor]:
         """The multiple-shooting loss of the current network, segment starts and estimates."""
-        p = hybrid.parameters_for(params_seg)
+        p_exp = hybrid.parameters_for(ref.batch.params)
+        p = p_exp[plan.exp_index]
         u0 = torch.where(pinned, fixed_first, torch.clamp(seg0 + free * state_scale, lo, hi))
         if fast:  # the same function with fewer operations per evaluation (physmend.ude.drive)
-            rhs, drives = hybrid_drive(hybrid, p, plan.x_half)
+            rhs, drives = hybrid_drive(hybrid, p_exp, plan.x_half, plan.exp_index)
             traj = rk4_segments(rhs, u0, plan, box, drives)  # (K+1, S, n)
         else:
             traj = rk4_segments(hybrid.rhs(p), u0, plan, box)

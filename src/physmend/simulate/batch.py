@@ -85,12 +85,24 @@ def make_batch(experiments: Sequence, model: CompiledModel, dtype: torch.dtype =
     )
 
 
-def own_stops(batch: Batch) -> list[torch.Tensor]:
+#: a clock per experiment is used where the busiest experiment's own stops are at most this share of
+#: the shared axis's (its rows and input knots): an iteration with a clock each costs about 1.6
+#: times a shared step (per-element times, inputs and step control)
+CLOCKS_PAY_BELOW = 0.6
+
+
+def own_stops(batch: Batch) -> list[torch.Tensor] | None:
     """Per experiment, the times (s) a solver on its own clock ends steps on: its rows with a
-    measurement and the kinks of its own inputs (:meth:`PiecewiseLinear.kinks`)."""
+    measurement and the kinks of its own inputs (:meth:`PiecewiseLinear.kinks`); None where a
+    clock each would not pay (one experiment, or experiments sampled at nearly the same times:
+    :data:`CLOCKS_PAY_BELOW`)."""
+    if batch.size < 2:
+        return None
     measured = torch.isfinite(batch.obs).any(-1)  # (T, B)
     kinks = batch.inputs.kinks()
-    return [torch.unique(torch.cat([batch.t[measured[:, b]], kinks[b].to(batch.t.dtype)])) for b in range(batch.size)]
+    own = [torch.unique(torch.cat([batch.t[measured[:, b]], kinks[b].to(batch.t.dtype)])) for b in range(batch.size)]
+    shared = torch.unique(torch.cat([batch.t, batch.inputs.knots.to(batch.t.dtype)])).numel()
+    return own if max(o.numel() for o in own) <= CLOCKS_PAY_BELOW * shared else None
 
 
 def inputs_at(batch: Batch, t: torch.Tensor) -> torch.Tensor:
@@ -128,8 +140,8 @@ def simulate_batch(
     if inner.numel():  # input kinks: step onto them rather than across them
         options.setdefault("tstops" if method in OWN_METHODS else "step_t", inner)
 
-    if method in CLOCK_METHODS and batch.size > 1:
-        options.setdefault("clocks", own_stops(batch))
+    if method in CLOCK_METHODS and "clocks" not in options:
+        options["clocks"] = own_stops(batch)  # None: one shared clock
     rhs = model.bind(p)
 
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:

@@ -56,8 +56,8 @@ def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], bat
     differences (which cost ``n`` extra right-hand sides per step).
     """
     options = {**_kinks(batch, sim["method"]), **sim["options"]}
-    if sim["method"] in CLOCK_METHODS and batch.size > 1:
-        options.setdefault("clocks", own_stops(batch))  # each experiment steps on its own times only
+    if sim["method"] in CLOCK_METHODS and "clocks" not in options:
+        options["clocks"] = own_stops(batch)  # each experiment steps on its own times only (None: shared)
 
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return rhs(u, inputs_at(batch, t))

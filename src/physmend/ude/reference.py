@@ -72,7 +72,10 @@ def reference(problem: Problem, cfg: Any) -> Reference:
     model = problem.compiled
     batch = make_batch(problem.experiments, model, problem.dtype)
 
+    # one shared clock: the reference's values at every row of the shared axis (the network's
+    # normalisation, segment starts of hidden states) are the method's step ends, not interpolants
     sim = _sim_opts(cfg)
+    sim = {**sim, "options": {**sim["options"], "clocks": None}}
 
     def outputs(sub: Batch, u0: torch.Tensor) -> torch.Tensor:
         states = simulate_with(model.bind(sub.params), sub, u0, sim, model.jacobian(sub.params))

@@ -3,7 +3,7 @@
 Each step needs one Jacobian (the given ``jacobian``, or forward differences in the same
 broadcast call that gives the step's first right-hand side), one LU factorisation of
 ``W = I/(gamma h) - J`` and one triangular solve per stage, all batched over the batch
-elements, which share one step size. The last stage's ``k`` is the difference to an embedded
+elements, which share one step size (:mod:`physmend.simulate.clocks`: each its own). The last stage's ``k`` is the difference to an embedded
 solution one order lower: the error estimate.
 
 Tableaus (``TABLEAUS``), transcribed from OrdinaryDiffEq.jl

@@ -166,6 +166,11 @@ class BoundRhs:
     #: ... up to this many columns ``E·n`` of the shared product
     SHARED_MAX_COLUMNS = 128
 
+    @classmethod
+    def pays(cls, n_states: int, n_matrices: int) -> bool:
+        """True where one product with ``n_matrices`` shared matrices beats a product per row."""
+        return n_states >= cls.SHARED_MIN_STATES and n_matrices * n_states <= cls.SHARED_MAX_COLUMNS
+
     def __init__(self, split: AffineSplit, p: torch.Tensor, rows: torch.Tensor | None = None) -> None:
         n, m = split.n_states, split.n_inputs
         self._shared: tuple[torch.Tensor, torch.Tensor | None, torch.Tensor] | None = None
@@ -178,7 +183,7 @@ class BoundRhs:
         c = flat[..., n * n + n * m :]
         if rows is not None:
             e = p.shape[0]
-            if n >= self.SHARED_MIN_STATES and e * n <= self.SHARED_MAX_COLUMNS:
+            if self.pays(n, e):
                 pick = rows.view(-1, 1, 1).expand(-1, 1, n)  # (S, 1, n): each row's block
                 self._shared = (A.transpose(-1, -2).permute(1, 0, 2).reshape(n, e * n),
                                 B.transpose(-1, -2).permute(1, 0, 2).reshape(m, e * n) if m else None, pick)
@@ -192,6 +197,12 @@ class BoundRhs:
             at, _, pick = self._shared
             return (u @ at).view(u.shape[0], -1, u.shape[1]).gather(1, pick).squeeze(1)
         return _matvec(self.A, u)
+
+    def linear_plus(self, u: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """``A·u + d`` for ``u``, ``d (B, n)`` (one fused product where the matrices are per row)."""
+        if self._shared is None and u.dim() == 2 and self.A.dim() == 3 and self.A.shape[0] == u.shape[0]:
+            return torch.baddbmm(d.unsqueeze(-1), self.A, u.unsqueeze(-1)).squeeze(-1)
+        return self.linear(u) + d
 
     def _affine_part(self, u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         shared = self._shared is not None and u.dim() == 2 and x.dim() == 2 and u.shape[0] == self.A.shape[0]
@@ -280,6 +291,11 @@ class CompiledModel:
             pr = p if rows is None else p[rows]
             return lambda u, x: self.rhs(u, x, pr)
         return BoundRhs(self._affine, p, rows)
+
+    def shares_matrices(self, n_matrices: int) -> bool:
+        """True where :meth:`bind` with ``rows`` over ``n_matrices`` distinct parameter rows shares
+        the physics' matrices (:meth:`BoundRhs.pays`); elsewhere callers bind per row, as before."""
+        return self._affine is not None and BoundRhs.pays(self._affine.n_states, n_matrices)
 
     @property
     def affine(self) -> bool:

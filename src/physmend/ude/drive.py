@@ -58,15 +58,15 @@ def split_first_layer(weight: torch.Tensor, bias: torch.Tensor, mean: torch.Tens
 
 
 def physics_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: torch.Tensor | None = None
-                  ) -> tuple[Callable[[torch.Tensor], torch.Tensor], torch.Tensor]:
-    """``u -> A(p)·u`` (:meth:`BoundRhs.linear`) and the drive ``B(p)·x + c(p)`` at every half step
-    ``(H, S, n)``; ``rows``: as for :meth:`CompiledModel.bind`."""
+                  ) -> tuple[Callable[[torch.Tensor, torch.Tensor], torch.Tensor], torch.Tensor]:
+    """``(u, d) -> A(p)·u + d`` (:meth:`BoundRhs.linear_plus`) and the drive ``B(p)·x + c(p)`` at
+    every half step ``(H, S, n)``; ``rows``: as for :meth:`CompiledModel.bind`."""
     bound = hybrid.compiled.bind(p, rows)
     assert isinstance(bound, BoundRhs)
     physics = bound.c.expand(xs.shape[0], *bound.c.shape)
     if hybrid.compiled.input_names:
         physics = physics + torch.einsum("sij,hsj->hsi", bound.B, xs)
-    return bound.linear, physics
+    return bound.linear_plus, physics
 
 
 def columns(hybrid: HybridModel) -> tuple[torch.Tensor | None, torch.Tensor | None]:
@@ -77,10 +77,10 @@ def columns(hybrid: HybridModel) -> tuple[torch.Tensor | None, torch.Tensor | No
     return reads, None if idx == list(range(n)) else torch.tensor(idx, dtype=torch.long)
 
 
-def with_physics(u: torch.Tensor, d: torch.Tensor, linear: Callable[[torch.Tensor], torch.Tensor], corr: torch.Tensor,
-                 index: torch.Tensor | None) -> torch.Tensor:
-    """``A·u + d`` (``linear(u) = A·u``) plus the corrections ``corr`` in the columns ``index`` (None: every column)."""
-    du = linear(u) + d
+def with_physics(u: torch.Tensor, d: torch.Tensor, linear_plus: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
+                 corr: torch.Tensor, index: torch.Tensor | None) -> torch.Tensor:
+    """``A·u + d`` (``linear_plus(u, d)``) plus the corrections ``corr`` in the columns ``index`` (None: every column)."""
+    du = linear_plus(u, d)
     return du + corr if index is None else du.index_add(-1, index, corr)
 
 

@@ -235,13 +235,17 @@ class _Stack:
         """Each model's training loss and fit loss ``(M,)``, as train() computes them for one."""
         m, plan = self.size, self.plan_rows
         s, n = self.seg0.shape[1:]
-        p_exp = self._parameters_for(self.ref.batch.params, self.est_raw, m)  # (M·E, n_params): per experiment
-        rows = (torch.arange(m)[:, None] * self.ref.batch.size + self.plan.exp_index[None]).flatten()
-        p = p_exp[rows]  # (M·S, n_params)
+        shared = None
+        if self.problem.compiled.shares_matrices(m * int(torch.unique(self.plan.exp_index).numel())):
+            p_exp = self._parameters_for(self.ref.batch.params, self.est_raw, m)  # (M·E, n_params): per experiment
+            rows = (torch.arange(m)[:, None] * self.ref.batch.size + self.plan.exp_index[None]).flatten()
+            p, shared = p_exp[rows], (p_exp, rows)  # (M·S, n_params); one physics matrix per model and experiment
+        else:
+            p = self._parameters_for(self.params_seg, self.est_raw, m)  # (M·S, n_params)
         u0 = torch.where(self.pinned[None], self.fixed_first[None],
                          torch.clamp(self.seg0 + self.free * self.state_scale, self.lo, self.hi))
         u0 = u0.reshape(m * s, n)
-        fast = self._drive(self.net, m, p, plan.x_half, (p_exp, rows))  # the same function, fewer operations
+        fast = self._drive(self.net, m, p, plan.x_half, shared)  # the same function, fewer operations
         if fast is not None:
             traj = rk4_segments(fast[0], u0, plan, self.box, fast[1])  # (K+1, M·S, n)
         else:

@@ -144,14 +144,19 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
         return patience > 0 and since_best >= patience
 
     fast = drivable(hybrid)
+    shared = fast and problem.compiled.shares_matrices(int(torch.unique(plan.exp_index).numel()))
 
     def objective() -> tuple[torch.Tensor, torch.Tensor]:
         """The multiple-shooting loss of the current network, segment starts and estimates."""
-        p_exp = hybrid.parameters_for(ref.batch.params)
-        p = p_exp[plan.exp_index]
+        if shared:  # one physics matrix per experiment (BoundRhs), not one per segment
+            p_exp = hybrid.parameters_for(ref.batch.params)
+            p = p_exp[plan.exp_index]
+        else:
+            p = hybrid.parameters_for(params_seg)
         u0 = torch.where(pinned, fixed_first, torch.clamp(seg0 + free * state_scale, lo, hi))
         if fast:  # the same function with fewer operations per evaluation (physmend.ude.drive)
-            rhs, drives = hybrid_drive(hybrid, p_exp, plan.x_half, plan.exp_index)
+            rhs, drives = (hybrid_drive(hybrid, p_exp, plan.x_half, plan.exp_index) if shared
+                           else hybrid_drive(hybrid, p, plan.x_half))
             traj = rk4_segments(rhs, u0, plan, box, drives)  # (K+1, S, n)
         else:
             traj = rk4_segments(hybrid.rhs(p), u0, plan, box)

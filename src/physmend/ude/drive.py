@@ -91,7 +91,7 @@ def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: t
     ``rows (S,)``: segment ``s`` has the parameters ``p[rows[s]]`` (``p`` per experiment; the
     physics then shares one matrix per experiment, :class:`BoundRhs`). Call only where
     :func:`drivable` holds. Gradients reach the network, ``p`` and the estimates."""
-    A, physics = physics_drive(hybrid, p, xs, rows)
+    linear_plus, physics = physics_drive(hybrid, p, xs, rows)
     if rows is not None:
         p = p[rows]
     layers = list(hybrid.net)
@@ -117,6 +117,6 @@ def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: t
         h = torch.addmm(h, u if state_idx is None else u[:, state_idx], wu_t)
         for layer in rest:
             h = torch.addmm(layer[0], h, layer[1]) if isinstance(layer, tuple) else layer(h)
-        return with_physics(u, d, A, h * gain, index)
+        return with_physics(u, d, linear_plus, h * gain, index)
 
     return f, Drives(physics, pre)

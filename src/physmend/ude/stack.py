@@ -207,7 +207,7 @@ class _Stack:
         h = self.template
         if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
             return None
-        A, physics = physics_drive(h, p, xs) if shared is None else physics_drive(h, shared[0], xs, shared[1])
+        linear_plus, physics = physics_drive(h, p, xs) if shared is None else physics_drive(h, shared[0], xs, shared[1])
         rows = p.shape[0]
         r = rows // m
         wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
@@ -226,7 +226,7 @@ class _Stack:
             d, first = drive
             us = u if state_idx is None else u[:, state_idx]
             corr = net(None, torch.baddbmm(first, us.reshape(m, r, -1), wu_t)).reshape(rows, -1)
-            return with_physics(u, d, A, corr if inv is None else corr * inv, index)
+            return with_physics(u, d, linear_plus, corr if inv is None else corr * inv, index)
 
         return f, Drives(physics, pre.reshape(xs.shape[0], m, r, -1))
 

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from physmend.simulate.errors import SimulationError
-from physmend.simulate.rodas import TABLEAUS, _Coefficients, _value_and_jacobian, rodas_step
+from physmend.simulate.rodas import _Coefficients, _value_and_jacobian, rodas_step, tableau_named, without_steps
 from physmend.simulate.rosenbrock import check_times
 
 Rhs = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
@@ -67,13 +67,9 @@ def odeint_rodas_each(
     if len(stops) != B:
         raise SimulationError(f"a clock per batch element needs {B} lists of stops, but got {len(stops)}")
     t0, t_final = float(t[0]), float(t[-1])
-    if t.numel() == 1:
-        return u0[None]
-    if t_final == t0:
-        return torch.stack([u0] * t.numel())
-    if tableau not in TABLEAUS:
-        raise SimulationError(f"tableau must be one of {sorted(TABLEAUS)}, but got {tableau!r}")
-    tab = TABLEAUS[tableau]
+    if (done_now := without_steps(t, u0)) is not None:
+        return done_now
+    tab = tableau_named(tableau)
     co = _Coefficients(tab, u0)
     dtype = u0.dtype
     span = t_final - t0

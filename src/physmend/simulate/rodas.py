@@ -307,6 +307,22 @@ def _fast_growth(step: RodasStep, J: torch.Tensor, h: float, atol: float) -> tup
     return (int(suspect[k]), rate) if h * rate > 1.0 else None
 
 
+def without_steps(t: torch.Tensor, u0: torch.Tensor) -> torch.Tensor | None:
+    """``u`` at ``t (T,)`` where no step is needed (one time, or none passing): ``(T, B, n)``; else None."""
+    if t.numel() == 1:
+        return u0[None]
+    if float(t[-1]) == float(t[0]):
+        return torch.stack([u0] * t.numel())
+    return None
+
+
+def tableau_named(name: str) -> RodasTableau:
+    """The tableau ``name`` of :data:`TABLEAUS`; SimulationError naming the choices otherwise."""
+    if name not in TABLEAUS:
+        raise SimulationError(f"tableau must be one of {sorted(TABLEAUS)}, but got {name!r}")
+    return TABLEAUS[name]
+
+
 def odeint_rodas(
     f: Rhs,
     u0: torch.Tensor,
@@ -339,13 +355,9 @@ def odeint_rodas(
     check_times(t)
     names = names or [str(i) for i in range(u0.shape[0])]
     t0, t_final = float(t[0]), float(t[-1])
-    if t.numel() == 1:
-        return u0[None]
-    if t_final == t0:
-        return torch.stack([u0] * t.numel())
-    if tableau not in TABLEAUS:
-        raise SimulationError(f"tableau must be one of {sorted(TABLEAUS)}, but got {tableau!r}")
-    tab = TABLEAUS[tableau]
+    if (done := without_steps(t, u0)) is not None:
+        return done
+    tab = tableau_named(tableau)
     coefficients = _Coefficients(tab, u0)
     span = t_final - t0
     u = u0

@@ -17,7 +17,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("config", "config_check"),
     ("modeling", "library"),
     ("data",),
-    ("problem", "simulate"),
+    ("problem", "simulate", "device"),
     ("explain",),
     ("ude",),
     ("symbolic",),

@@ -12,6 +12,7 @@ user's own and are checked where they are read. Imports ``config`` only lazily (
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -153,6 +154,17 @@ def check_settings(cfg: DictConfig, choices: dict[str, str], conf_dir: Path) -> 
         cfg.seed = check_value("seed", cfg.seed, 0)
     if "threads" in cfg:
         cfg.threads = check_value("threads", cfg.threads, 1)
+    if "device" in cfg:
+        check_device(cfg.device)
+
+
+def check_device(value: Any) -> None:
+    """``device`` is ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (whether this machine has that device is
+    checked where the problem is loaded, :func:`physmend.device.resolve_device`)."""
+    text = str(value).strip().lower()
+    if text in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", text):
+        return
+    raise SettingError(f"device must be auto, cpu, cuda or cuda:N (N a device number), but got {value!r}")
 
 
 def _walk(node: DictConfig, defaults: dict[str, Any], prefix: str) -> None:

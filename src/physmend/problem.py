@@ -7,6 +7,7 @@ from typing import Any
 
 import torch
 
+from physmend.device import CPU, resolve_device
 from physmend.modeling import CompiledModel, SimplifiedModel, compile_model, load_model
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -22,6 +23,8 @@ class Problem:
     dtype: torch.dtype
     #: the unit of every time (``data.time_unit``: seconds unless declared; any other unit is shown, never converted)
     time_unit: str = "s"
+    #: where training and its simulations run (``device``, :mod:`physmend.device`); other stages use the CPU
+    device: torch.device = CPU
 
     def by_role(self, *roles: str) -> list[Any]:
         return [e for e in self.experiments if e.role in roles]
@@ -47,9 +50,10 @@ def load_problem(cfg: Any) -> Problem:
     if torch.get_num_threads() != threads:  # small solves: thread hand-off costs more than it saves
         torch.set_num_threads(threads)
     dtype = dtype_of(cfg)
+    device = resolve_device(cfg.get("device", "auto"))
     model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}, cfg.model.get("corrections")).simplify()
     experiments = load_experiments(cfg.data, model)
     from physmend.data.config import time_unit_of
 
     return Problem(model=model, compiled=compile_model(model), experiments=experiments, dtype=dtype,
-                   time_unit=time_unit_of(cfg.data))
+                   time_unit=time_unit_of(cfg.data), device=device)

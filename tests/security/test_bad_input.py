@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import torch
 
 from physmend.cli import main
 
@@ -69,6 +70,9 @@ CASES: list[tuple[str, str, Setup, list[str]]] = [
     ("no server", "diagnose", _override("tracking.uri=http://127.0.0.1:9"), ["tracking.uri", "127.0.0.1:9"]),
     ("builder raises", "diagnose", _raising_builder, ["broken.py", "line", "spring constant must be positive"]),
     ("builder syntax", "diagnose", _syntax_error_builder, ["typo.py", "line 1"]),
+    ("device word", "sweep", _override("device=gpu"), ["device", "'gpu'", "cuda:N"]),
+    *([("no cuda", "sweep", _override("device=cuda"), ["device=cuda", "no CUDA device", "device=cpu"])]
+      if not torch.cuda.is_available() else []),
 ]
 
 

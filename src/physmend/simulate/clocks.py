@@ -102,7 +102,7 @@ def odeint_rodas_each(
             J = jacobian(tt, u)
         else:
             f0, J = _value_and_jacobian(f, tt, u)
-        bad = ~torch.isfinite(f0).all(-1).numpy() & ~done
+        bad = ~torch.isfinite(f0).all(-1).cpu().numpy() & ~done
         if bad.any():
             b = int(np.nonzero(bad)[0][0])
             raise SimulationError(f"experiment(s) {[names[i] for i in np.nonzero(bad)[0]]}: non-finite derivative "
@@ -110,8 +110,8 @@ def odeint_rodas_each(
         fresh = np.isnan(h)
         if fresh.any():  # first step size from the state's and derivative's scale (Hairer's heuristic)
             scale = atol + rtol * u.detach().abs()
-            d0 = (u.detach() / scale).pow(2).mean(-1).sqrt().numpy()
-            d1 = (f0.detach() / scale).pow(2).mean(-1).sqrt().numpy()
+            d0 = (u.detach() / scale).pow(2).mean(-1).sqrt().cpu().numpy()
+            d1 = (f0.detach() / scale).pow(2).mean(-1).sqrt().cpu().numpy()
             guess = np.where((d0 > 1e-5) & (d1 > 1e-5), 0.01 * d0 / np.maximum(d1, 1e-300), 1e-6 * max(span, 1.0))
             h = np.where(fresh, np.maximum(np.minimum(span, guess), 10 * h_min), h)
         delta = math.sqrt(torch.finfo(dtype).eps) * np.maximum(np.abs(tc), h)
@@ -123,7 +123,7 @@ def odeint_rodas_each(
         h_try = np.where(done, 10 * h_min, np.maximum(h, h_min))  # finished elements: a tiny step, discarded
         step = rodas_step(f, tt, u, torch.as_tensor(h_try, dtype=dtype), f0, J, dfdt, tab, co)
         scale = atol + rtol * torch.maximum(u.abs(), step.u_new.abs())
-        err = (step.err / scale).detach().pow(2).mean(-1).sqrt().numpy().copy()
+        err = (step.err / scale).detach().pow(2).mean(-1).sqrt().cpu().numpy().copy()
         err[done] = 0.0
         finite = np.isfinite(err)
         safe = np.where(finite, err, 1.0)
@@ -132,7 +132,7 @@ def odeint_rodas_each(
         ok = finite & (err <= 1.0) & ~done
         fast = np.zeros(B, dtype=bool)
         if ok.any():
-            rates = _growth_rates(u, step.u_new, J, atol).numpy()
+            rates = _growth_rates(u, step.u_new, J, atol).cpu().numpy()
             fast = ok & (h * rates > 1.0)  # a mode grows faster than the step can follow: retry shorter
             h = np.where(fast, np.minimum(h * factor, 0.5 / np.maximum(rates, 1e-300)), h)
             ok &= ~fast
@@ -179,7 +179,7 @@ def _on_times(t: torch.Tensor, u0: torch.Tensor, starts: np.ndarray, ends: np.nd
     ``us``, ``news (I, B, n)``: states at their starts and ends; ``ks (I, s, B, n)`` the stage
     increments. A time at a step's end is that end; one inside a step its continuous extension.
     """
-    times = t.detach().numpy()
+    times = t.detach().cpu().numpy()
     B = u0.shape[0]
     cols = []
     for b in range(B):

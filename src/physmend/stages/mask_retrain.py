@@ -84,9 +84,11 @@ def _unpacked(blob: bytes, problem: Any) -> Any:
 
 
 def retrain_all(work: Any, problem: Any, sets: list[list[str]], train: Callable[..., Any], n_workers: int) -> list[Any]:
-    """One retraining per equation set of ``sets``, in order; ``n_workers`` at a time in forked processes."""
+    """One retraining per equation set of ``sets``, in order; ``n_workers`` at a time in forked processes
+    (one after another when training runs on a GPU: CUDA does not survive a fork, and the GPU is one)."""
     global _JOB
-    if n_workers <= 1 or len(sets) <= 1 or "fork" not in multiprocessing.get_all_start_methods():
+    if (n_workers <= 1 or len(sets) <= 1 or "fork" not in multiprocessing.get_all_start_methods()
+            or problem.device.type != "cpu"):
         return [retrain(work, problem, names, train) for names in sets]
     _JOB = (work, problem, train, sets)
     try:

@@ -29,14 +29,14 @@ def fit_figures(problem: Problem, batch: Batch, y: torch.Tensor, ref: Reference)
     """Measured vs model-as-written vs hybrid outputs, one figure per experiment."""
     from physmend.explain.plots import fit_figure
 
-    t = batch.t.numpy()
-    y_ref = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None]).numpy()
+    t = batch.t.cpu().numpy()
+    y_ref = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None]).cpu().numpy()
     figs: dict[str, Any] = {}
     for b, e in enumerate(problem.experiments):
         curves = [("model as written", y_ref[:, b], {"ls": "--", "color": "C3", "lw": 1}),
-                  ("hybrid (UDE)", y[:, b].numpy(), {"color": "C0", "lw": 1.2})]
+                  ("hybrid (UDE)", y[:, b].cpu().numpy(), {"color": "C0", "lw": 1.2})]
         split = float(e.split_time) if e.split_time is not None else None
-        figs[f"plots/fit_{e.id}.png"] = fit_figure(t, batch.obs[:, b].numpy(), curves, problem.model.output_names,
+        figs[f"plots/fit_{e.id}.png"] = fit_figure(t, batch.obs[:, b].cpu().numpy(), curves, problem.model.output_names,
                                                    problem.model.units, f"experiment {e.id} ({e.role})", split,
                                                    problem.time_unit)
     return figs

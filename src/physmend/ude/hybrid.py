@@ -24,6 +24,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from physmend.device import default_device, on_cpu
 from physmend.modeling.compile import CompiledModel
 
 ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
@@ -159,11 +160,13 @@ class HybridModel(nn.Module):
         self.coefficients = der_coefficients(compiled.model, spec.corrected) if spec.units == "equation" and spec.corrected else None
         # 1 keeps a correction, 0 masks it (output masking evaluates top-k subsets this way)
         self.register_buffer("out_mask", torch.ones(len(spec.corrected), dtype=dtype), persistent=False)
-        self.net = make_mlp(spec.n_inputs, spec.widths, len(spec.corrected), spec.activation).to(dtype)
-        with torch.no_grad():  # start with small corrections
-            last = self.net[-1]
-            last.weight.mul_(0.1)
-            last.bias.zero_()
+        with on_cpu():  # the same initial weights for a seed on every device (physmend.device)
+            net = make_mlp(spec.n_inputs, spec.widths, len(spec.corrected), spec.activation).to(dtype)
+            with torch.no_grad():  # start with small corrections
+                last = net[-1]
+                last.weight.mul_(0.1)
+                last.bias.zero_()
+        self.net = net.to(default_device())
         params = {v.name: v for v in compiled.model.parameters}
         self.est_idx = [compiled.parameter_names.index(n) for n in spec.estimated]
         lo = [params[n].bounds[0] for n in spec.estimated]  # type: ignore[index]
@@ -241,7 +244,8 @@ class HybridModel(nn.Module):
 
     def keep_only(self, names: list[str]) -> None:
         """Mask every correction except those of the states ``names``."""
-        self.out_mask = torch.tensor([1.0 if n in names else 0.0 for n in self.spec.corrected], dtype=self.out_mask.dtype)
+        self.out_mask = torch.tensor([1.0 if n in names else 0.0 for n in self.spec.corrected], dtype=self.out_mask.dtype,
+                                     device=self.out_mask.device)
 
     def rhs(self, p: torch.Tensor, rows: torch.Tensor | None = None) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``f(u, x) -> du/dt`` of the hybrid for parameters ``p (B, n_params)`` (already estimated);

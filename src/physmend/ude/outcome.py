@@ -23,3 +23,12 @@ class TrainResult:
     artifacts: dict[str, str | bytes]
     figures: dict[str, Any] = field(default_factory=dict)
     hybrid: HybridModel | None = None
+
+    def on_cpu(self) -> TrainResult:
+        """This result with its model moved to the CPU (a training on a GPU returns it so: every
+        other stage works on the CPU). On the CPU already: itself, unchanged."""
+        hybrid = self.hybrid
+        if hybrid is not None and hybrid.mean.device.type != "cpu":
+            hybrid.to("cpu")
+            hybrid.initial_estimates = {k: v.cpu() for k, v in hybrid.initial_estimates.items()}
+        return self

@@ -91,23 +91,23 @@ def recorded_rates(hybrid: HybridModel, problem: Problem, cfg: Any, states: list
     psyms = [v.symbol for v in problem.model.parameters]
     columns: dict[str, np.ndarray] = {}
     for i, n in enumerate(names):
-        columns[n] = forced.states[..., i].numpy()
+        columns[n] = forced.states[..., i].cpu().numpy()
     for j, n in enumerate(problem.model.input_names):
-        columns[n] = forced.inputs[..., j].numpy()
+        columns[n] = forced.inputs[..., j].cpu().numpy()
     G = forced.states.shape[0]
     for k, n in enumerate(problem.model.parameter_names):
-        columns[n] = np.broadcast_to(p[:, k].numpy(), (G, p.shape[0])).copy()
+        columns[n] = np.broadcast_to(p[:, k].cpu().numpy(), (G, p.shape[0])).copy()
     with torch.no_grad():  # algebraic variables too (a formula may act on a recorded concentration)
         observed = problem.compiled.observed(forced.states, forced.inputs, p[None])
     for k, n in enumerate(problem.compiled.observed_names):
-        columns.setdefault(n, observed[..., k].numpy())
+        columns.setdefault(n, observed[..., k].cpu().numpy())
     rates = RecordedRates(columns=columns, targets={}, valid=np.zeros(0, dtype=bool), window=window)
-    point_valid = forced.valid.numpy().astype(float)
+    point_valid = forced.valid.cpu().numpy().astype(float)
     rates.valid = rates.box(point_valid) > 1 - 1e-9
     for s in wanted:
         i = names.index(s)
         coef = lambdify_torch(psyms, [problem.model.der_coefficient[s]], "der coefficient")(*p.unbind(-1))[0]
-        a = torch.as_tensor(coef, dtype=p.dtype).expand(p.shape[0]).numpy()  # (E,)
-        mismatch = (forced.rates[..., forced.measured.index(i)] - physics[..., i]).numpy() * a[None, :]
+        a = torch.as_tensor(coef, dtype=p.dtype).expand(p.shape[0]).cpu().numpy()  # (E,)
+        mismatch = (forced.rates[..., forced.measured.index(i)] - physics[..., i]).cpu().numpy() * a[None, :]
         rates.targets[s] = rates.box(mismatch)
     return rates

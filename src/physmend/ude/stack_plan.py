@@ -37,7 +37,8 @@ def _setup(problem: Problem, cfg: DictConfig, *, plan: bool = True) -> tuple[Ref
             _SETUPS.pop(next(iter(_SETUPS)))
         entry = _SETUPS[id(problem)] = (problem, {}, {})
     _, refs, plans = entry
-    ref_key = json.dumps(_sim_opts(cfg), sort_keys=True, default=str)
+    # a reference lives on one device (physmend.device): computed once per device
+    ref_key = json.dumps([_sim_opts(cfg), str(torch.get_default_device())], sort_keys=True, default=str)
     ref = refs.get(ref_key)
     if ref is None:
         ref = refs[ref_key] = reference(problem, cfg)

@@ -51,6 +51,7 @@ import math
 from omegaconf import DictConfig, OmegaConf
 import torch
 
+from physmend.device import placed
 from physmend.problem import Problem
 from physmend.simulate import make_batch
 from physmend.ude.artifacts import artifacts_of, fit_figures
@@ -164,6 +165,14 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
         raise UDEConfigError(f"final_eval must be 'own' or 'batched', but got {final_eval!r}")
     if not cfgs:
         return []
+    with placed(problem.device):  # physmend.device; every result's model comes back on the CPU
+        results = _train_stack(cfgs, problem, report, final_eval, figures)
+    return [r.on_cpu() if isinstance(r, TrainResult) else r for r in results]
+
+
+def _train_stack(cfgs: Sequence[DictConfig], problem: Problem, report: Report | None, final_eval: str,
+                 figures: bool) -> list[TrainResult | BaseException]:
+    """:func:`train_stack` on the current default device."""
     from physmend.ude.timescale import check_budget, resolve_times
 
     _check_shared(cfgs)

@@ -22,6 +22,7 @@ import math
 
 import torch
 
+from physmend.device import placed
 from physmend.problem import Problem
 from physmend.ude.artifacts import artifacts_of, fit_figures
 from physmend.ude.drive import drivable, hybrid_drive
@@ -50,10 +51,19 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     and at epoch 0 after a derivative-matching warm start (``train.warm_start``);
     an exception it raises (e.g. a pruning signal) stops training and propagates.
 
+    Runs on ``problem.device`` (:mod:`physmend.device`); the result's model is on the CPU.
+
     Raises:
         TrainingDiverged: the loss or a trajectory became non-finite.
         UDEConfigError: a ``ude.*`` / ``train.*`` setting does not fit the model.
     """
+    with placed(problem.device):
+        result = _train(cfg, problem, report)
+    return result.on_cpu()
+
+
+def _train(cfg: Any, problem: Problem, report: Callable[[int, dict[str, float]], None] | None) -> TrainResult:
+    """:func:`train` on the current default device."""
     from physmend.ude.timescale import check_budget, resolve_times
 
     torch.manual_seed(int(cfg.get("seed", 0)))

@@ -286,7 +286,7 @@ def warm_key(hybrid: HybridModel, forced: Forced, params: torch.Tensor, iteratio
     tensors += [forced.states, forced.rates, forced.inputs, forced.valid, params]
     for t in tensors:
         h.update(np.ascontiguousarray(t.detach().cpu().numpy()).tobytes() + b"|")
-    h.update(f"{iterations}|{window}|{forced.dt}|{forced.measured}|{id(hybrid.compiled)}".encode())
+    h.update(f"{iterations}|{window}|{forced.dt}|{forced.measured}|{id(hybrid.compiled)}|{params.device}".encode())
     return h.hexdigest()
 
 

@@ -165,6 +165,7 @@ def train_stack(cfgs: Sequence[DictConfig], problem: Problem, *, report: Report 
         raise UDEConfigError(f"final_eval must be 'own' or 'batched', but got {final_eval!r}")
     if not cfgs:
         return []
+    _check_shared(cfgs)  # before the problem is used
     with placed(problem.device):  # physmend.device; every result's model comes back on the CPU
         results = _train_stack(cfgs, problem, report, final_eval, figures)
     return [r.on_cpu() if isinstance(r, TrainResult) else r for r in results]
@@ -175,7 +176,6 @@ def _train_stack(cfgs: Sequence[DictConfig], problem: Problem, report: Report | 
     """:func:`train_stack` on the current default device."""
     from physmend.ude.timescale import check_budget, resolve_times
 
-    _check_shared(cfgs)
     ref, _ = _setup(problem, cfgs[0], plan=False)
     cfgs = [resolve_times(cfg, problem, ref) for cfg in cfgs]  # 'auto' time settings, as train() resolves them
     cfg0 = cfgs[0]

@@ -74,7 +74,3 @@ def on_cpu() -> Iterator[None]:
     with torch.device(CPU):
         yield
 
-
-def default_device() -> torch.device:
-    """The device new tensors land on here (inside :func:`placed`: its device)."""
-    return torch.get_default_device()

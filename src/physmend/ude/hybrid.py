@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from physmend.device import default_device, on_cpu
+from physmend.device import on_cpu
 from physmend.modeling.compile import CompiledModel
 
 ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
@@ -166,7 +166,7 @@ class HybridModel(nn.Module):
                 last = net[-1]
                 last.weight.mul_(0.1)
                 last.bias.zero_()
-        self.net = net.to(default_device())
+        self.net = net.to(torch.get_default_device())
         params = {v.name: v for v in compiled.model.parameters}
         self.est_idx = [compiled.parameter_names.index(n) for n in spec.estimated]
         lo = [params[n].bounds[0] for n in spec.estimated]  # type: ignore[index]

@@ -7,6 +7,14 @@ formula match the same template: the formula is evaluated on sample values of it
 (e.g. trajectories), and for every template and every admissible assignment of variables to
 placeholders the coefficient ``c`` is fitted by least squares; the R² of that fit ranks the
 matches.
+
+A form is never used with a quantity on an interval scale (a unit with an offset: ``degC``,
+``degF``, a unit the model declares affine) other than linearly or as a difference
+(:mod:`physmend.symbolic.interval`): ``c·√|u|`` (Torricelli) or ``c·sign(u)`` of a temperature in
+°C is not admissible, ``c·(a − b)·√|a − b|`` of two is. A threshold form's constant ``k`` (a
+quantile of its variable) lies on the variable's own scale and moves with its zero, so
+``c·Max(u − k, 0)`` stays admissible; a scale or an exponent does not move, so ``u/(k + u)`` and
+``u·|u|^(k−1)`` of a °C quantity are not.
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ import itertools
 import re
 import string
 from collections.abc import Mapping
+from functools import lru_cache
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,6 +33,7 @@ import sympy
 import yaml
 
 from physmend.modeling.evaluate import abs_bars, evaluate, mse_r2
+from physmend.modeling.units import is_affine
 
 DEFAULT_CATALOGUE = Path(__file__).with_name("mechanisms.yaml")
 
@@ -83,7 +93,8 @@ class Mechanism:
     k: str | None = None
 
     def admissible(self, assignment: Mapping[str, str], units: Mapping[str, str]) -> bool:
-        """Whether mapping placeholders to variables (``assignment``) obeys the unit rules."""
+        """Whether mapping placeholders to variables (``assignment``) obeys the unit rules, and uses
+        every variable on an interval scale (°C) only linearly or as a difference (:meth:`interval_reason`)."""
         unit = {p: (units.get(v) or "").strip() or None for p, v in assignment.items()}
         for p, required in self.units.items():
             if unit[p] != required:
@@ -96,7 +107,19 @@ class Mechanism:
             known = [unit[p] for p in group if unit[p] is not None]
             if len(known) != len(set(known)):
                 return False
-        return True
+        return self.interval_reason(assignment, units) is None
+
+    def interval_reason(self, assignment: Mapping[str, str], units: Mapping[str, str]) -> str | None:
+        """Why this form may not take the variables of ``assignment`` whose units have an offset
+        (``degC``): the reason naming the template's offending part, or None. Placeholders stand for
+        the variables; a threshold ``k`` moves with its variable's zero."""
+        scales = tuple(sorted((p, (units.get(v) or "").strip()) for p, v in assignment.items()
+                              if is_affine(units.get(v))))
+        if not scales:
+            return None
+        if self.k == "threshold" and len(scales) == 1:  # the threshold is a value on the variable's scale
+            scales = scales + ((SECOND, scales[0][1]),)
+        return _shape_reason(self.shape, scales)
 
     def describe(self, assignment: Mapping[str, str]) -> str:
         """The explanation with the variable names filled in."""
@@ -130,6 +153,15 @@ class MechanismMatch:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict."""
         return asdict(self)
+
+
+@lru_cache(maxsize=1024)
+def _shape_reason(shape: sympy.Expr, scales: tuple[tuple[str, str], ...]) -> str | None:
+    """:func:`physmend.symbolic.interval.shift_violation` of a template's shape with the placeholders
+    ``scales`` (name -> affine unit) shifting; the verdict depends on the form only, so it is kept."""
+    from physmend.symbolic.interval import shift_violation
+
+    return shift_violation(shape, {sympy.Symbol(p): unit for p, unit in scales})
 
 
 def _parse_template(text: str, where: str) -> sympy.Expr:

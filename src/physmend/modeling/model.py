@@ -71,6 +71,22 @@ class Model:
     _ders: dict[str, sp.Symbol] = field(default_factory=dict, repr=False)
 
     # -- declarations -------------------------------------------------------------------------
+    def affine_unit(self, unit: str, *, offset: float | None = None, base: str | None = None) -> None:
+        """Declare ``unit`` a unit with an offset (an interval scale, like ``degC``): its zero is a
+        convention, so a quantity in it enters a nonlinear term of a discovered formula only as a
+        difference. ``offset``: how far the unit's zero lies above the absolute zero, in its own
+        steps (273.15 for degC); required. ``base``: optional unit whose steps it counts (``"K"``).
+        ``degC``, ``°C``, ``degF`` and ``°F`` are known without a declaration.
+
+        Example: ``m.affine_unit("degRe", offset=218.52, base="K")`` (Réaumur).
+        """
+        from physmend.modeling.units import AffineUnitError, declare_affine
+
+        try:
+            declare_affine(unit, offset, base=base)
+        except AffineUnitError as exc:
+            raise ModelError(f"model {self.name!r}: {exc}") from None
+
     def _declare(self, name: str, kind: Kind, **kw: object) -> sp.Symbol:
         if not isinstance(name, str) or not _NAME_RE.match(name):
             raise ModelError(

@@ -15,6 +15,18 @@ so a product holding one can take any dimension; integers and exponents are pure
 returns the formula's dimension, :data:`ANY` where constants leave it free, or raises
 :class:`UnitMismatch` naming the first operation whose operands cannot agree (``T + Q`` with ``T`` in
 K and ``Q`` in W; ``exp(T)``).
+
+Units with an offset (affine units, an interval scale): ``degC``/``°C`` and ``degF``/``°F`` are
+built in; a model may declare more (:func:`declare_affine`, through
+:meth:`physmend.modeling.Model.affine_unit`), each with its ``offset`` — how far its zero lies
+above the absolute zero, in its own steps (273.15 for degC). A quantity in such a unit has a zero
+that is a convention, so it may enter a nonlinear operation only as a difference
+(:mod:`physmend.symbolic.interval` checks formulas). :func:`is_affine` and :func:`affine_offset`
+answer for one unit string: the whole string must be the unit (``degC/s``, a rate, is a ratio
+scale). This module is extended rather than replaced by ``pint``: pint knows affine units, but it
+is not installed here, its registry would not read the Modelica notation models are written in
+(``J/(kg.K)``, ``m2.5/s``, a model's own words such as ``kanimals``) and unknown words must stay
+dimensions of their own, never errors; the affine knowledge needed is one offset per unit.
 """
 
 from __future__ import annotations
@@ -46,7 +58,7 @@ class UnitMismatch(ValueError):
 _BASE = {"kg": {"M": 1}, "m": {"L": 1}, "s": {"T": 1}, "K": {"Θ": 1}, "A": {"I": 1}, "mol": {"N": 1},
          "cd": {"J": 1}}
 _DERIVED = {
-    "g": "kg/1", "degC": "K", "degF": "K", "°C": "K", "rad": "1", "sr": "1", "%": "1", "1": "1",
+    "g": "kg/1", "degC": "K", "degF": "K", "°C": "K", "°F": "K", "rad": "1", "sr": "1", "%": "1", "1": "1",
     "Hz": "1/s", "N": "kg.m/s2", "Pa": "N/m2", "bar": "Pa", "atm": "Pa", "J": "N.m", "W": "J/s",
     "C": "A.s", "V": "W/A", "F": "C/V", "Ohm": "V/A", "Ω": "V/A", "S": "A/V", "Wb": "V.s", "T": "Wb/m2",
     "H": "Wb/A", "L": "m3", "l": "m3", "min": "s", "h": "s", "d": "s", "day": "s", "Wh": "W.h",
@@ -55,6 +67,81 @@ _DERIVED = {
 _PREFIXES = ("da", "Y", "Z", "E", "P", "G", "M", "k", "h", "d", "c", "m", "u", "µ", "n", "p", "f", "a")
 #: a unit word (letters), an exponent or a number (``2``, ``-1``, ``2.5``), or one of ``( ) . / * ^``
 _TOKEN = re.compile(r"[A-Za-zµΩ°%_]+|[-+]?\d+(?:\.\d+)?|[()./*^]|\s+|.")
+
+
+#: built-in units on an interval scale -> how far their zero lies above the absolute zero, in their own steps
+BUILTIN_AFFINE: dict[str, float] = {"degC": 273.15, "°C": 273.15, "degF": 459.67, "°F": 459.67}
+#: affine units declared by models in this process (:func:`declare_affine`): unit -> offset
+_USER_AFFINE: dict[str, float] = {}
+#: declared affine unit -> the unit whose steps it counts (its dimension), where one was given
+_USER_BASE: dict[str, str] = {}
+_UNIT_WORD = re.compile(r"[A-Za-zµΩ°%_]+")
+
+
+class AffineUnitError(ValueError):
+    """An affine-unit declaration breaks a rule (the message names the unit, the rule and the value)."""
+
+
+def declare_affine(unit: str, offset: float | None = None, *, base: str | None = None) -> None:
+    """Declare ``unit`` a unit with an offset (an interval scale), for the whole process.
+
+    Args:
+        unit: one unit word (letters and ``° µ Ω % _``, e.g. ``"degRe"``): a compound such as
+            ``"degC/s"`` is a rate, a ratio scale, and cannot be affine.
+        offset: how far the unit's zero lies above the absolute zero, in the unit's own steps
+            (273.15 for degC, 459.67 for degF, 1.01325 for a gauge pressure in bar); required,
+            finite.
+        base: optional unit whose steps ``unit`` counts (``"K"``): its dimension becomes
+            ``unit``'s; without it the unit is a dimension of its own.
+
+    Declaring the same unit again with the same offset and base does nothing.
+
+    Raises:
+        AffineUnitError: no offset, an offset that is not a finite number, a unit that is not one
+            word or is an absolute unit (``K``, ``m``), an unreadable base, or a redeclaration that
+            differs.
+    """
+    if not isinstance(unit, str) or not _UNIT_WORD.fullmatch(unit.strip()):
+        raise AffineUnitError(f"an affine unit must be one unit word such as 'degRe' (letters, °, µ, Ω, %, _), "
+                              f"but got {unit!r}")
+    unit = unit.strip()
+    if offset is None:
+        raise AffineUnitError(f"affine unit {unit!r} needs offset=: how far its zero lies above the absolute "
+                              "zero, in its own steps (273.15 for degC), but none was given")
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or offset != offset or abs(offset) == float("inf"):
+        raise AffineUnitError(f"affine unit {unit!r} needs a finite number as offset, but got {offset!r}")
+    if unit in _BASE or (unit in _DERIVED and unit not in BUILTIN_AFFINE) or any(
+            unit.startswith(p) and (unit[len(p):] in _BASE or unit[len(p):] in _DERIVED) for p in _PREFIXES):
+        raise AffineUnitError(f"unit {unit!r} is an absolute (ratio-scale) unit and cannot be declared affine")
+    if base is not None and dimension(base) is None:
+        raise AffineUnitError(f"affine unit {unit!r}: base must be a readable unit such as 'K', but got {base!r}")
+    known = BUILTIN_AFFINE.get(unit, _USER_AFFINE.get(unit))
+    if known is not None and (known != float(offset) or (base is not None and _USER_BASE.get(unit, base) != base)):
+        raise AffineUnitError(f"affine unit {unit!r} is already declared with offset {known:g}"
+                              f"{f' (base {_USER_BASE[unit]!r})' if unit in _USER_BASE else ''}, "
+                              f"but got offset {float(offset):g}{f' (base {base!r})' if base else ''}")
+    if unit in BUILTIN_AFFINE:
+        return
+    _USER_AFFINE[unit] = float(offset)
+    if base is not None:
+        _USER_BASE[unit] = base.strip()
+
+
+def affine_offset(unit: str | None) -> float | None:
+    """The offset of ``unit`` if it is affine (built in or declared): its zero's height above the
+    absolute zero in its own steps; ``None`` for an absolute unit, a compound or no unit."""
+    text = (unit or "").strip()
+    return BUILTIN_AFFINE.get(text, _USER_AFFINE.get(text))
+
+
+def is_affine(unit: str | None) -> bool:
+    """Whether ``unit`` (the whole string) is a unit with an offset: a quantity on an interval scale."""
+    return affine_offset(unit) is not None
+
+
+def affine_units() -> dict[str, float]:
+    """Every affine unit known now (built in and declared): unit -> offset."""
+    return {**BUILTIN_AFFINE, **_USER_AFFINE}
 
 
 def _mul(a: Dimension, b: Dimension, power: float = 1.0) -> Dimension:
@@ -72,6 +159,8 @@ def _word(word: str, depth: int = 0) -> Dimension:
     """A unit word without exponent: SI base, derived, prefixed, or a dimension of its own."""
     if word in _BASE:
         return dict(_BASE[word])
+    if word in _USER_BASE and depth < 8:  # a declared affine unit measured in steps of a known unit
+        return _parse(_USER_BASE[word], depth + 1)
     if word in _DERIVED and depth < 8:
         return _parse(_DERIVED[word], depth + 1)
     for p in _PREFIXES:

@@ -14,6 +14,7 @@ from physmend.symbolic._errors import BackendUnavailable, SymbolicError
 from physmend.modeling.evaluate import display, evaluate, mse_r2
 from physmend.modeling.units import mismatch
 from physmend.symbolic._front import Candidate, ParetoFront, pareto_filter
+from physmend.symbolic.interval import interval_violation
 
 #: back end name -> module implementing it (imported lazily; the modules import nothing heavy at import time).
 BACKENDS: dict[str, str] = {
@@ -132,7 +133,11 @@ def fit(
         check_units: drop every formula whose units cannot be consistent — within itself (``T + Q``
             with ``T`` in K and ``Q`` in W, ``exp(T)``) or with ``target_unit`` — by the declared
             ``units`` (:func:`physmend.modeling.units.mismatch`: a fitted constant may carry any
-            unit, an unknown unit is never a reason). ``info["unit_rejected"]`` counts them.
+            unit, an unknown unit is never a reason). ``info["unit_rejected"]`` counts them. It also
+            drops every formula that uses a quantity on an interval scale (a unit with an offset:
+            ``degC``, ``degF``, a unit the model declares affine) other than linearly or as a
+            difference (``sign(T)``, ``√|T|``, ``T1·T2``; :mod:`physmend.symbolic.interval`):
+            ``info["interval_rejected"]`` counts them.
 
     Returns:
         The non-dominated formulas, complexity ascending; choose one with :func:`choose`.
@@ -171,6 +176,7 @@ def fit(
     columns = {name: X[:, j] for j, name in enumerate(names)}
     candidates: list[Candidate] = []
     rejected: list[str] = []
+    interval_rejected: list[str] = []
     for expr, complexity, terms, text in raw:
         if isinstance(expr, str):  # a back end's text: the restricted parser, never sympify
             from physmend.modeling.safe_parse import parse_safe
@@ -180,6 +186,10 @@ def fit(
             why = mismatch(expr, units, target_unit)
             if why is not None:
                 rejected.append(f"{display(expr)}: {why}")
+                continue
+            why = interval_violation(expr, units)
+            if why is not None:
+                interval_rejected.append(f"{display(expr)}: {why}")
                 continue
         y_hat = evaluate(expr, columns, n=n)
         if not np.isfinite(y_hat).all():
@@ -193,6 +203,11 @@ def fit(
     front = pareto_filter(candidates)
     if not raw:
         raise SymbolicError(f"back end {backend!r} returned no formula for {target!r}")
+    if interval_rejected and not candidates:
+        raise SymbolicError(
+            f"every formula back end {backend!r} returned for {target!r} uses a quantity on an interval scale (a unit "
+            f"with an offset such as degC) other than linearly or as a difference (first: {interval_rejected[0]}); "
+            "give the model such quantities in an absolute unit (K), or set symbolic.units=false to skip this check")
     if rejected and not candidates:
         raise SymbolicError(
             f"every formula back end {backend!r} returned for {target!r} has units that cannot be "
@@ -211,6 +226,8 @@ def fit(
         "n_raw_candidates": len(raw),
         "unit_rejected": len(rejected),
         "unit_rejected_examples": rejected[:3],
+        "interval_rejected": len(interval_rejected),
+        "interval_rejected_examples": interval_rejected[:3],
         **_jsonable(details),
     }
     return ParetoFront(backend, target, names, front, units=units, n_points=n, info=info)

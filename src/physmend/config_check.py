@@ -200,6 +200,9 @@ KNOWN: dict[str, tuple[int, str]] = {
     "exp": (1, "exp(a)"),
     "log": (1, "log(|a|)"),
     "tanh": (1, "tanh(a) (smooth saturation)"),
+    "sin": (1, "sin(a) of a phase a (an angle: pendulums, cranks, rotating frames)"),
+    "cos": (1, "cos(a) of a phase a (an angle)"),
+    "pow": (2, "|a|^c, c a fitted exponent (power laws: turbulent drag, creep, flow curves)"),
 }
 
 

@@ -10,7 +10,8 @@ syntax tree and accepts only
   underscore never are;
 * ``+ - * / **`` (and ``^``, read as ``**``), unary ``-`` and ``+``; numeric exponents up to
   ``MAX_EXPONENT`` in size;
-* calls of whitelisted functions (``sqrt exp log Abs/abs sign tanh sin cos Min/min Max/max …``) and,
+* calls of whitelisted functions (``sqrt exp log Abs/abs sign tanh sin cos cot atan2 Min/min Max/max
+  powabs floor …``) and,
   for ``srepr`` text, the constructors ``Add Mul Pow Symbol('name') Float('1.5', precision=53)
   Integer(2) Rational(1, 2)``.
 
@@ -41,6 +42,10 @@ FUNCTIONS: dict[str, object] = {
     "atan": sp.atan, "Min": sp.Min, "min": sp.Min, "Max": sp.Max, "max": sp.Max, "Heaviside": sp.Heaviside,
     "cbrt": sp.cbrt, "square": lambda x: x**2, "Add": sp.Add, "Mul": sp.Mul, "asin": sp.asin, "acos": sp.acos,
     "sqrtabs": lambda x: sp.sqrt(sp.Abs(x)), "logabs": lambda x: sp.log(sp.Abs(x)), "log1p": lambda x: sp.log(1 + x),
+    "powabs": lambda a, b: sp.Abs(a) ** b, "cot": sp.cot, "sec": sp.sec, "csc": sp.csc, "acot": sp.acot,
+    "asec": sp.asec, "acsc": sp.acsc, "coth": sp.coth, "sech": sp.sech, "csch": sp.csch, "asinh": sp.asinh,
+    "acosh": sp.acosh, "atanh": sp.atanh, "acoth": sp.acoth, "asech": sp.asech, "acsch": sp.acsch,
+    "atan2": sp.atan2, "floor": sp.floor, "ceiling": sp.ceiling, "ceil": sp.ceiling, "erf": sp.erf,
 }
 CONSTANTS = {"pi": sp.pi, "E": sp.E}
 _DOTTED = re.compile(r"(?<![\w.'\"])([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+)")

@@ -7,7 +7,9 @@ non-dominated set is the Pareto front. Model strings are written with stand-in n
 Default settings (measured on 2 cores, 2,000 points, 3 inputs: 2–7 s):
 population 300, 50 generations, trees of at most 25 nodes and depth 8, 5 Levenberg–Marquardt
 steps on the constants of each offspring, operators ``add, sub, mul, div, square, abs, sqrtabs``
-(``sqrtabs(x) = sqrt(|x|)``, so ``c·ΔT·sqrt(|ΔT|)`` is a tree of length 12).
+(``sqrtabs(x) = sqrt(|x|)``, so ``c·ΔT·sqrt(|ΔT|)`` is a tree of length 12). With the shared
+operators (the ``operators`` config group) the symbols are theirs: ``sin``/``cos`` where an input is
+an angle, ``pow`` as ``powabs`` (``|a|^b``, written ``abs(a) ^ b``).
 """
 
 from __future__ import annotations
@@ -87,12 +89,19 @@ def resolve_options(options: dict) -> dict[str, Any]:
     return resolve(options, DEFAULTS, backend="operon", extra=passthrough)
 
 
+#: settings key holding the shared operators until :func:`search` knows the inputs' units (not pyoperon's)
+SHARED = "shared_operators"
+
+
 def with_operators(settings: dict[str, Any], ops: dict[str, int], given: set[str]) -> dict[str, Any]:
     """``allowed_symbols`` from the shared operators (:mod:`physmend.symbolic.operators`) unless the
-    back end's own ``allowed_symbols`` option was given."""
+    back end's own ``allowed_symbols`` option was given; :func:`search` keeps ``sin``/``cos`` only
+    where an input is an angle (:func:`physmend.symbolic.operators.operators_for`)."""
     from physmend.symbolic.operators import operon_symbols
 
-    return settings if "allowed_symbols" in given else {**settings, "allowed_symbols": operon_symbols(ops)}
+    if "allowed_symbols" in given:
+        return settings
+    return {**settings, "allowed_symbols": operon_symbols(ops), SHARED: dict(ops)}
 
 
 def parse_model(text: str, names: list[str]) -> sympy.Expr:
@@ -113,7 +122,11 @@ def search(
     """Run pyoperon on ``X (n, k)``, ``y (n,)``; returns ``(expr, tree length, {}, None)`` per front member and run details."""
     from pyoperon.sklearn import SymbolicRegressor
 
-    settings = {k: v for k, v in options.items() if k != "max_points"}
+    settings = {k: v for k, v in options.items() if k not in ("max_points", SHARED)}
+    if options.get(SHARED) is not None:  # the shared operators, for these inputs (sin/cos only of an angle)
+        from physmend.symbolic.operators import operators_for, operon_symbols
+
+        settings["allowed_symbols"] = operon_symbols(operators_for(options[SHARED], {n: units.get(n, "") for n in names}))
     try:
         reg = SymbolicRegressor(random_state=int(seed) % 2**63, **settings)
         reg.fit(X, y)
@@ -126,4 +139,4 @@ def search(
             warnings.simplefilter("ignore")
             text = reg.get_model_string(member["tree"], 20, names=stand_ins)
         out.append((parse_model(text, names), int(member["length"]), {}, None))
-    return out, {"generations": int(reg.stats_.get("generations", 0))}
+    return out, {"generations": int(reg.stats_.get("generations", 0)), "allowed_symbols": settings.get("allowed_symbols")}

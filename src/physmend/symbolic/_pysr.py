@@ -46,12 +46,20 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
+#: settings key holding the shared operators and the keys made from them until :func:`search` knows
+#: the inputs' units (never passed to PySR)
+SHARED = "shared_operators"
+
+
 def with_operators(settings: dict[str, Any], ops: dict[str, int], given: set[str]) -> dict[str, Any]:
-    """``binary_operators``, ``unary_operators`` and ``complexity_of_operators`` from the shared
-    operators (:mod:`physmend.symbolic.operators`), each unless given as a back-end option."""
+    """``binary_operators``, ``unary_operators`` and ``complexity_of_operators`` (with ``pow`` also
+    ``extra_sympy_mappings`` and ``constraints``) from the shared operators
+    (:mod:`physmend.symbolic.operators`), each unless given as a back-end option; :func:`search`
+    keeps ``sin``/``cos`` only where an input is an angle (``operators_for``)."""
     from physmend.symbolic.operators import pysr_operators
 
-    return {**settings, **{k: v for k, v in pysr_operators(ops).items() if k not in given}}
+    made = {k: v for k, v in pysr_operators(ops).items() if k not in given}
+    return {**settings, **made, SHARED: (dict(ops), sorted(made))}
 
 
 def _julia_executable() -> str | None:
@@ -93,7 +101,16 @@ def search(
     except Exception as exc:  # Julia packages missing, offline resolution failed, ...
         raise BackendUnavailable(f"{UNAVAILABLE} (importing pysr failed: {exc})") from exc
 
-    settings = {k: v for k, v in options.items() if k != "max_points"}
+    settings = {k: v for k, v in options.items() if k not in ("max_points", SHARED)}
+    if options.get(SHARED) is not None:  # the shared operators, for these inputs (sin/cos only of an angle)
+        from physmend.symbolic.operators import operators_for, pysr_operators
+
+        ops, made = options[SHARED]
+        fitted = pysr_operators(operators_for(ops, {n: units.get(n, "") for n in names}))
+        for key in made:
+            settings.pop(key, None)
+            if key in fitted:
+                settings[key] = fitted[key]
     settings.update(
         model_selection="best",
         random_state=int(seed),

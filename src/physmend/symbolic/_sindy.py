@@ -5,7 +5,9 @@ The library is built generically from the inputs and their units (nothing about 
 - a constant, and each input ``u``;
 - for every pair of inputs ``a, b`` with the same (known) unit, ``d = a - b``:
   ``d``, ``d·sqrt(|d|)``, ``d·|d|``, and ``a⁴ - b⁴`` when the unit is kelvin (``"K"``);
-- each difference times each input whose unit is known and differs from the pair's: ``d·u``.
+- each difference times each input whose unit is known and differs from the pair's: ``d·u``;
+- with the operators ``sin``/``cos``: ``sin(u)``, ``cos(u)`` of each input that is an angle or a
+  pure number by its unit (an angle in ``deg`` converted to radians).
 
 Inputs without a unit are never paired. Regression is pysindy's sequentially thresholded least
 squares (``STLSQ``) on unit-norm columns and a unit-norm target, so the threshold is a fraction of
@@ -27,6 +29,7 @@ import sympy
 from physmend.symbolic._api import resolve
 from physmend.symbolic._errors import SymbolicError
 from physmend.modeling.evaluate import abs_bars
+from physmend.symbolic.operators import angle_scale, dimensionless, operators_for
 
 DEFAULTS: dict[str, Any] = {
     "n_thresholds": 30,
@@ -82,8 +85,10 @@ def library(X: np.ndarray, names: list[str], units: dict[str, str], *, radiation
     same-unit differences ``d``; with ``sqrt`` and ``mul`` ``d·sqrt(|d|)`` (and ``u·sqrt(|u|)``),
     with ``abs`` and ``mul`` ``d·|d|``, with ``mul`` the products ``d·u`` and ``u·v`` of any two
     inputs, with ``sign`` ``sign(u)`` and ``sign(d)``, with ``max``/``min`` the one-way parts
-    ``max(d, 0)``/``min(d, 0)``. None: the families before operators were data (no ``u·v``, no
-    signed powers of single inputs)."""
+    ``max(d, 0)``/``min(d, 0)``, with ``sin``/``cos`` ``sin(u)``/``cos(u)`` of each input whose unit
+    is an angle (in radians: ``sin(π/180·u)`` for ``deg``) or a pure number. ``pow`` (a fitted
+    exponent) is not a linear family: pyoperon and PySR search it. None: the families before
+    operators were data (no ``u·v``, no signed powers of single inputs)."""
     ops = set(LEGACY if operators is None else operators)
     legacy = operators is None
     n = X.shape[0]
@@ -93,6 +98,10 @@ def library(X: np.ndarray, names: list[str], units: dict[str, str], *, radiation
     terms += [Term(sym[j], X[:, j]) for j in range(len(names))]
     if not legacy:
         for j in range(len(names)):
+            for name, fn, f_np in (("sin", sympy.sin, np.sin), ("cos", sympy.cos, np.cos)):
+                if name in ops and dimensionless(unit[j]):  # a phase: sin(u), with u in deg sin(π/180·u)
+                    scale = angle_scale(unit[j]) or sympy.Integer(1)
+                    terms.append(Term(fn(scale * sym[j]), f_np(float(scale) * X[:, j])))
             if "sqrt" in ops and "mul" in ops:
                 terms.append(Term(sym[j] * sympy.sqrt(sympy.Abs(sym[j])), X[:, j] * np.sqrt(np.abs(X[:, j]))))
             if "sign" in ops:
@@ -156,8 +165,11 @@ def search(
     """Threshold sweep of STLSQ on ``X (n, k)``, ``y (n,)``; returns ``(expr, n_terms, terms, text)`` per model and the library."""
     from pysindy.optimizers import STLSQ
 
+    ops = options.get("operators")
+    if ops is not None:  # sin/cos only where an input is an angle (physmend.symbolic.operators.operators_for)
+        ops = sorted(operators_for(dict.fromkeys(ops, 1), {n: units.get(n, "") for n in names}))
     terms = library(X, names, units, radiation_unit=options["radiation_unit"], products=options["products"],
-                    operators=options.get("operators"))
+                    operators=ops)
     norms = np.array([np.linalg.norm(t.values) for t in terms])
     keep = [i for i, t in enumerate(terms) if np.isfinite(t.values).all() and norms[i] > 0]
     terms = [terms[i] for i in keep]

@@ -14,6 +14,7 @@ import torch
 from physmend.modeling import Model, compile_model
 from physmend.modeling.evaluate import evaluate
 from physmend.modeling.rewrite import REWRITES, for_torch
+from physmend.modeling.safe_parse import parse_safe
 
 U = [-2.3, -0.7, 0.4, 1.3, 2.6]  # away from 0 and from whole numbers: no kink of sign, floor, |u| …
 X = [1.7, -0.6, 0.9, -1.4, 0.55]
@@ -154,3 +155,13 @@ def test_the_rewrite_leaves_other_expressions_as_they_are() -> None:
     expr = sp.sin(a) * sp.sqrt(sp.Abs(b)) + sp.Max(a, 0)
     assert for_torch(expr) is expr
     assert all(not for_torch(f(a)).has(f) for f in REWRITES)
+
+
+@pytest.mark.parametrize("case", sorted(c for c in CASES if not c.startswith("Piecewise")))
+def test_a_stored_formula_with_each_function_is_read_back_by_the_restricted_parser(case: str) -> None:
+    u, x = sp.Symbol("u"), sp.Symbol("x")
+    term = CASES[case][0](u, x)
+    back = parse_safe(str(term), {"u": u, "x": x}, where=case)
+    assert sp.simplify(back - term) == 0 or back == term, (term, back)
+    assert parse_safe("abs(0.5*u) ^ 1.37", {"u": u}) == sp.Abs(0.5 * u) ** sp.Float(1.37)  # pyoperon's powabs
+    assert parse_safe("powabs(u, 1.37)", {"u": u}) == sp.Abs(u) ** sp.Float(1.37)

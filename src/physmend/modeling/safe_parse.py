@@ -46,6 +46,7 @@ FUNCTIONS: dict[str, object] = {
     "asec": sp.asec, "acsc": sp.acsc, "coth": sp.coth, "sech": sp.sech, "csch": sp.csch, "asinh": sp.asinh,
     "acosh": sp.acosh, "atanh": sp.atanh, "acoth": sp.acoth, "asech": sp.asech, "acsch": sp.acsch,
     "atan2": sp.atan2, "floor": sp.floor, "ceiling": sp.ceiling, "ceil": sp.ceiling, "erf": sp.erf,
+    "erfc": sp.erfc, "frac": sp.frac, "sinc": sp.sinc,
 }
 CONSTANTS = {"pi": sp.pi, "E": sp.E}
 _DOTTED = re.compile(r"(?<![\w.'\"])([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+)")

@@ -10,6 +10,7 @@ import sympy as sp
 
 from physmend.config import ConfigError, compose
 from physmend.symbolic import fit
+from physmend.symbolic import _operon, _pysr
 from physmend.symbolic._sindy import library
 from physmend.symbolic.operators import (
     KNOWN, OperatorError, check_operators, operators_for, operon_symbols, priced_size, pysr_operators)
@@ -93,6 +94,21 @@ def test_operators_for_keeps_sin_and_cos_where_an_input_is_an_angle(unit: str,
     ops = shipped["default"]
     assert operators_for(ops, {"x": "m", "theta": unit}) == ops
     assert operators_for({**ops, "sin": None}, {"theta": unit})["sin"] is None  # switched off stays off
+
+
+@pytest.mark.parametrize("unit, trig", [("rad", True), ("m", False)])
+def test_each_back_end_searches_sin_and_cos_only_where_an_input_is_an_angle(unit: str, trig: bool) -> None:
+    ops = {**DEFAULT, "pow": 2}
+    names, units = ["theta", "x"], {"theta": unit, "x": "m"}
+    operon = _operon.operator_settings(_operon.with_operators({"max_points": 10}, ops, set()), names, units)
+    assert ("sin" in operon["allowed_symbols"].split(",")) is trig and "powabs" in operon["allowed_symbols"]
+    assert "max_points" not in operon and _operon.SHARED not in operon
+    mine = "add,sub,constant,variable"
+    assert _operon.operator_settings(_operon.with_operators({}, ops, {"allowed_symbols"}) | {"allowed_symbols": mine},
+                                     names, units)["allowed_symbols"] == mine  # the user's own symbols stay
+    pysr = _pysr.operator_settings(_pysr.with_operators({"max_points": 10}, ops, set()), names, units)
+    assert ({"sin", "cos"} <= set(pysr["unary_operators"])) is trig and "powabs" in pysr["constraints"]
+    assert _pysr.SHARED not in pysr
 
 
 def test_pyoperon_finds_minus_three_sin_theta() -> None:

@@ -104,6 +104,18 @@ def with_operators(settings: dict[str, Any], ops: dict[str, int], given: set[str
     return {**settings, "allowed_symbols": operon_symbols(ops), SHARED: dict(ops)}
 
 
+def operator_settings(options: dict[str, Any], names: list[str], units: dict[str, str]) -> dict[str, Any]:
+    """``options`` less physmend's own keys, with ``allowed_symbols`` made from the shared operators
+    (:func:`with_operators`) for inputs ``names`` with ``units`` (``sin``/``cos`` only where one is an
+    angle: :func:`physmend.symbolic.operators.operators_for`)."""
+    settings = {k: v for k, v in options.items() if k not in ("max_points", SHARED)}
+    if options.get(SHARED) is not None:
+        from physmend.symbolic.operators import operators_for, operon_symbols
+
+        settings["allowed_symbols"] = operon_symbols(operators_for(options[SHARED], {n: units.get(n, "") for n in names}))
+    return settings
+
+
 def parse_model(text: str, names: list[str]) -> sympy.Expr:
     """Parse a pyoperon infix string written with stand-ins ``x0..`` into an expression in ``names``."""
     from physmend.modeling.errors import ModelError
@@ -122,11 +134,7 @@ def search(
     """Run pyoperon on ``X (n, k)``, ``y (n,)``; returns ``(expr, tree length, {}, None)`` per front member and run details."""
     from pyoperon.sklearn import SymbolicRegressor
 
-    settings = {k: v for k, v in options.items() if k not in ("max_points", SHARED)}
-    if options.get(SHARED) is not None:  # the shared operators, for these inputs (sin/cos only of an angle)
-        from physmend.symbolic.operators import operators_for, operon_symbols
-
-        settings["allowed_symbols"] = operon_symbols(operators_for(options[SHARED], {n: units.get(n, "") for n in names}))
+    settings = operator_settings(options, names, units)
     try:
         reg = SymbolicRegressor(random_state=int(seed) % 2**63, **settings)
         reg.fit(X, y)

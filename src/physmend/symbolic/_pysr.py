@@ -62,6 +62,23 @@ def with_operators(settings: dict[str, Any], ops: dict[str, int], given: set[str
     return {**settings, **made, SHARED: (dict(ops), sorted(made))}
 
 
+def operator_settings(options: dict[str, Any], names: list[str], units: dict[str, str]) -> dict[str, Any]:
+    """``options`` less physmend's own keys, the operator settings made from the shared operators
+    (:func:`with_operators`) made again for inputs ``names`` with ``units`` (``sin``/``cos`` only
+    where one is an angle: :func:`physmend.symbolic.operators.operators_for`)."""
+    settings = {k: v for k, v in options.items() if k not in ("max_points", SHARED)}
+    if options.get(SHARED) is not None:
+        from physmend.symbolic.operators import operators_for, pysr_operators
+
+        ops, made = options[SHARED]
+        fitted = pysr_operators(operators_for(ops, {n: units.get(n, "") for n in names}))
+        for key in made:
+            settings.pop(key, None)
+            if key in fitted:
+                settings[key] = fitted[key]
+    return settings
+
+
 def _julia_executable() -> str | None:
     """A Julia executable that exists on this machine, or None (nothing is imported or started)."""
     candidates = [shutil.which("julia"), os.environ.get("PYTHON_JULIAPKG_EXE")]
@@ -101,16 +118,7 @@ def search(
     except Exception as exc:  # Julia packages missing, offline resolution failed, ...
         raise BackendUnavailable(f"{UNAVAILABLE} (importing pysr failed: {exc})") from exc
 
-    settings = {k: v for k, v in options.items() if k not in ("max_points", SHARED)}
-    if options.get(SHARED) is not None:  # the shared operators, for these inputs (sin/cos only of an angle)
-        from physmend.symbolic.operators import operators_for, pysr_operators
-
-        ops, made = options[SHARED]
-        fitted = pysr_operators(operators_for(ops, {n: units.get(n, "") for n in names}))
-        for key in made:
-            settings.pop(key, None)
-            if key in fitted:
-                settings[key] = fitted[key]
+    settings = operator_settings(options, names, units)
     settings.update(
         model_selection="best",
         random_state=int(seed),

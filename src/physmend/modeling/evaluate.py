@@ -38,7 +38,7 @@ def evaluate(expr: sympy.Expr, columns: Mapping[str, np.ndarray], *, n: int | No
         n = sizes[0] if sizes else 1
     # Symbols with dots are not Python identifiers: evaluate through safe stand-ins.
     dummies = [sympy.Symbol(f"_v{i}") for i in range(len(symbols))]
-    f = sympy.lambdify(dummies, expr.xreplace(dict(zip(symbols, dummies))), modules="numpy")
+    f = sympy.lambdify(dummies, expr.xreplace(dict(zip(symbols, dummies))), modules=["scipy", "numpy"])
     with np.errstate(all="ignore"):
         out = f(*[np.asarray(columns[s.name], dtype=float) for s in symbols])
     out = np.asarray(out, dtype=float)

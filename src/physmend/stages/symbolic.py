@@ -211,6 +211,28 @@ def _correction(problem: Any, state: str, front: Any, idx: int, why: str, column
     return Correction(state=state, term=sp.sstr(expr), constants=consts, unit=unit)
 
 
+#: a short record's choice by simulation re-fits at most this many formulas: those the recorded
+#: mismatch ranks best (a weak ranking on few windows, but one that costs nothing)
+SHORTLIST = 16
+
+
+def recorded_shortlist(front: Any, scores: list[tuple[float, float]], windows: float,
+                       size: int = SHORTLIST) -> list[int]:
+    """Indices of the ``size`` candidates of ``front`` with the lowest BIC against the recorded
+    mismatch, ``n·ln(1 − R²) + k·ln(n)`` over ``n = windows`` (``scores``: ``(α, R²)`` per candidate)."""
+    from physmend.modeling.evaluate import n_constants
+
+    n = max(2.0, windows)
+
+    def bic(i: int) -> float:
+        r2 = scores[i][1]
+        if not np.isfinite(r2):
+            return math.inf
+        return n * math.log(max(1.0 - r2, 1e-12)) + n_constants(front.candidates[i].expr) * math.log(n)
+
+    return sorted(range(len(front.candidates)), key=bic)[:size]
+
+
 #: candidates listed per equation (besides the chosen one) unless ``symbolic.verbose``
 LISTED = 5
 
@@ -233,7 +255,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.ude.analysis import training_trajectories
     from physmend.ude.timescale import resolve_times
     from physmend.ude.metrics import checkpoint_problem
-    from physmend.ude.spec import informative_parameters
+    from physmend.symbolic.choice import MIN_RECORDED_WINDOWS, independent_windows, training_samples
+    from physmend.symbolic import ParetoFront
+    from physmend.symbolic.library import pair_candidates
+    from physmend.symbolic.scaled import scaled_variants
+    from physmend.ude.spec import informative_parameters, scale_parameters
 
     store = open_store(cfg.tracking)
     sens_run = resolve(store, source_run_id, stages=("sensitivity",), latest=source_run_id is None)
@@ -248,6 +274,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     unknown = [p for p in params if p not in problem.model.parameter_names]
     if unknown:
         raise TrackingError(f"symbolic.parameters names {unknown}, which are not parameters of model {problem.model.name!r}")
+    # parameters seen at two values only: a scale of a form, never a free variable (physmend.symbolic.scaled)
+    scale = [p for p in scale_parameters(problem) if p not in params] if sc.parameters == "auto" else []
     traj = training_trajectories(hybrid, problem, work)
     names = hybrid.spec.input_names
     with torch.no_grad():
@@ -258,7 +286,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     columns.update(measured_quantities(problem, traj, kept, set(columns)))
     x_names = list(columns)
     X = np.stack([columns[n] for n in x_names], axis=1)
-    units = {n: problem.model.units.get(n, "") for n in x_names}
+    for p in scale:  # after X: not a variable of the regression
+        columns[p] = traj.p[:, problem.model.parameter_names.index(p)].numpy()
+    units = {n: problem.model.units.get(n, "") for n in [*x_names, *scale]}
     y_all = targets(hybrid, problem, traj, kept)
     fronts, chosen, picks = {}, {}, {}
     choices = dict(sc.choice or {})
@@ -280,6 +310,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                  and (rates is None or s not in rates.targets)]
     recorded_scores: dict[str, list[tuple[float, float]]] = {}
     operators = OmegaConf.to_container(cfg.operators) if "operators" in cfg else None  # checked when composed
+    if operators is not None:  # sin/cos only where some input is an angle (physmend.symbolic.operators)
+        from physmend.symbolic.operators import operators_for
+
+        operators = operators_for(operators, {n: units[n] for n in x_names})
     for state in kept:
         front = fit(X, y_all[state], x_names, backend=str(sc.backend), target=state, units=units,
                     options=dict(sc.options or {}), seed=int(cfg.get("seed", 0)), operators=operators,
@@ -288,8 +322,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         if front.info.get("unit_rejected"):
             print(f"{state}: {front.info['unit_rejected']} formula(s) left out, their units cannot be the equation's "
                   f"(e.g. {front.info['unit_rejected_examples'][0]})")
+        extra = scaled_variants(front.candidates, scale, columns, y_all[state], operators=operators)
         if select == "recorded":
-            extra = catalogue_candidates(x_names, units, columns, y_all[state], operators=operators)
+            extra += catalogue_candidates([*x_names, *scale], units, columns, y_all[state], operators=operators,
+                                          scale_only=set(scale))
+        if extra:
             front.candidates = sorted(front.candidates + extra, key=lambda c: (c.complexity, c.mse))
         fronts[state] = front
         if rates is not None and state in rates.targets and choices.get(state) is None:
@@ -307,6 +344,29 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     dropped = drop_needless(work, problem, kept, simulated, choices, fronts, picks, columns, units, sc)
     kept = [s for s in kept if s not in dropped]
     fronts = {s: f for s, f in fronts.items() if s not in dropped}
+    windows = independent_windows(rates) if rates is not None else math.inf
+    short = [s for s in kept if s in recorded_scores and windows < MIN_RECORDED_WINDOWS]
+    for state in short:  # products and ratios of two variables join (appended: the other picks' indices hold)
+        names_lib = [n for n in x_names if n not in problem.model.parameter_names]
+        lib = pair_candidates(names_lib, columns, y_all[state], operators=operators)
+        fronts[state].candidates = fronts[state].candidates + lib
+        recorded_scores[state] = recorded_scores[state] + [(a, r2) for a, _, r2 in (rates.score(c.expr, state) for c in lib)]
+    for state in short:  # a short record: the recorded mismatch is a handful of window means; every sample decides
+        front = fronts[state]
+        shortlist = recorded_shortlist(front, recorded_scores[state], windows)
+        sub = ParetoFront(backend=front.backend, target=state, inputs=front.inputs,
+                          candidates=[front.candidates[i] for i in shortlist])
+
+        def build_all(i: int, state: str = state, shortlist: list[int] = shortlist) -> list:
+            return [_correction(problem, s, fronts[s], *((shortlist[i], "") if s == state else picks[s]), columns,
+                                units, sc, {}) for s in kept]
+        i, why = choose_by_simulation(
+            work, problem, state, sub, build_all, min(int(sc.refit_epochs), SELECTION_REFIT_STEPS),
+            n_obs=training_samples(problem),
+            reason=(f"the training records give only {windows:.0f} independent windows of recorded mismatch, fewer "
+                    f"than {MIN_RECORDED_WINDOWS}: the {len(shortlist)} formulas they rank best are put into the model "
+                    "and every training sample decides"))
+        picks[state] = (shortlist[i], why)
     fallback = ""
     while True:
         corrections = [_correction(problem, state, fronts[state], *picks[state], columns, units, sc, chosen) for state in kept]

@@ -33,10 +33,15 @@ def nearly_constant(t: np.ndarray) -> bool:
 
 
 def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict[str, np.ndarray],
-                         y: np.ndarray, *, operators: dict[str, int] | None = None) -> list[Any]:
+                         y: np.ndarray, *, operators: dict[str, int] | None = None,
+                         scale_only: frozenset[str] | set[str] = frozenset()) -> list[Any]:
     """The catalogue's forms over ``inputs`` (unit rules obeyed), each ``c`` fitted to ``y (N,)``,
     alone and plus a steady offset (``c·form + c0``: an offset the rest of the model leaves);
-    complexity priced by ``operators`` (:func:`physmend.symbolic.operators.priced_size`; None: nodes)."""
+    complexity priced by ``operators`` (:func:`physmend.symbolic.operators.priced_size`; None: nodes).
+
+    ``scale_only``: parameters seen at too few values to be tested as a variable
+    (:func:`physmend.ude.spec.scale_parameters`): a form of those alone is offered with its one
+    constant only — ``c·p + c0`` (or ``c·|p|^k``) would fit any two per-experiment sizes."""
     from physmend.symbolic.operators import priced_size
     import itertools
 
@@ -51,6 +56,8 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
             assignment = dict(zip(m.placeholders, combo))
             if not m.admissible(assignment, units):
                 continue
+            if m.k and set(combo) <= set(scale_only):
+                continue  # a second fitted constant on two values: any two per-experiment sizes
             shape = m.shape.xreplace({sp.Symbol(ph): sp.Symbol(v) for ph, v in assignment.items()})
             if m.k:  # the second constant (threshold, scale, exponent): the best of its grid, then fixed
                 fitted = fit_with_k(m, f, np.asarray(columns[combo[0]], dtype=float), y)
@@ -62,7 +69,7 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
             if tt == 0.0 or (not shape.is_Number and nearly_constant(t)):
                 continue  # a form that is one value along the samples is the steady source, said less simply
             variants = [(float(t @ y) / tt, 0.0)]
-            if not shape.is_Number:
+            if not shape.is_Number and not set(combo) <= set(scale_only):
                 (c1, c0), *_ = np.linalg.lstsq(np.stack([t, np.ones_like(t)], 1), y, rcond=None)
                 variants.append((float(c1), float(c0)))
             for c, c0 in variants:
@@ -113,7 +120,8 @@ def _bar(items: Any, desc: str) -> Any:
 
 
 def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build: Any,
-                         refit_steps: int = 0) -> tuple[int, str]:
+                         refit_steps: int = 0, *, n_obs: float | None = None,
+                         reason: str | None = None) -> tuple[int, str]:
     """The formula for ``state`` whose corrected *model* best reproduces the training records.
 
     Where a kept equation's state is not measured, no recorded mismatch exists for it and the
@@ -126,8 +134,11 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     sized wrong by the regression would otherwise lose to a wrong one; :mod:`physmend.symbolic.refit`).
     ``BIC = n·ln(L) + k·ln(n)`` with ``L`` the re-fitted multiple-shooting loss (the mean squared
     normalised output error plus the continuity penalty), ``k`` the formula's constants and ``n``
-    the independent windows (``symbolic.window`` long) of the training records. A candidate whose
-    segments cannot be solved is out. Validation and test records decide nothing here.
+    the independent windows (``symbolic.window`` long) of the training records — or ``n_obs``, the
+    training samples, where the caller knows the records are too short for windows to count
+    (:func:`training_samples`). A candidate whose segments cannot be solved is out. Validation and
+    test records decide nothing here. ``reason`` says why the simulation decides (default: the state
+    is not measured).
     """
     import dataclasses
 
@@ -140,7 +151,7 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     window = max(float(work.symbolic.window), 1e-300)
     span = sum(float(e.split_time if e.split_time is not None else e.obs_time[-1]) - float(e.obs_time[0])
                for e in problem.experiments if e.role == "train")
-    n = max(2.0, span / window)
+    n = max(2.0, span / window) if n_obs is None else max(2.0, float(n_obs))
     # the model as written, simulated once: the segments' plan, initial guesses and scales (a
     # candidate's own parameters — its constants — come with its own batch)
     base = reference(checkpoint_problem(problem), work)
@@ -183,9 +194,35 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     c = front.candidates[pick]
     screened = (f"; screened first with {SCREEN_STEPS} steps each, the best {SCREEN_KEEP} re-fitted in full"
                 if count > SCREEN_KEEP and refit_steps > SCREEN_STEPS else "")
-    why = (f"Rule 'simulated' ({state} is not measured, so no recorded mismatch exists for it): each formula put "
+    reason = reason or f"{state} is not measured, so no recorded mismatch exists for it"
+    unit_n = f"{n:.0f} training samples" if n_obs is not None else f"{n:.0f} independent windows of {window:.4g}"
+    why = (f"Rule 'simulated' ({reason}): each formula put "
            f"into the model, its constants re-fitted through the simulator (multiple shooting over the training "
-           f"records, at most {refit_steps} steps{screened}); the lowest BIC = n·ln(L) + k·ln(n) of that loss ({n:.0f} "
-           f"independent windows of {window:.4g}); chose index {pick} ({n_constants(c.expr)} constant(s), "
+           f"records, at most {refit_steps} steps{screened}); the lowest BIC = n·ln(L) + k·ln(n) of that loss ({unit_n}); chose index {pick} ({n_constants(c.expr)} constant(s), "
            f"loss {losses[pick]:.4g}): {c.text}")
     return pick, why
+
+
+#: the recorded mismatch ranks formulas only where the training records give at least this many
+#: independent windows: BIC's ``n·ln(MSE) + k·ln(n)`` weighs a fit over ``n`` values against ``k``
+#: constants, and with a handful of window means (a short record) a one-variable shape with two
+#: constants matches them as well as the right product of two states. Below it the corrected model's
+#: simulation over every training sample decides (:func:`choose_by_simulation`).
+MIN_RECORDED_WINDOWS = 20
+
+
+def independent_windows(rates: Any) -> float:
+    """The independent windows of the recorded mismatch (its sliding windows overlap: one per window)."""
+    return float(rates.valid.sum()) / max(int(rates.window), 1)
+
+
+def training_samples(problem: Any) -> int:
+    """Measured values (output × time, NaN left out) of the training experiments before any carved
+    validation slice: the ``n`` of a choice by simulation over every training sample."""
+    total = 0
+    for e in problem.experiments:
+        if e.role != "train":
+            continue
+        rows = e.obs_time < e.split_time if e.split_time is not None else np.ones(e.obs_time.shape, dtype=bool)
+        total += int(np.isfinite(e.obs[rows]).sum())
+    return total

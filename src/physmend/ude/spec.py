@@ -16,10 +16,12 @@ from physmend.ude.reference import Reference, _stats, _train_mask
 
 
 MIN_PARAMETER_VALUES = 3
-"""A parameter is a network (and formula) input under ``auto`` when it takes at least this many
-distinct values across the training experiments: with two, it only tells the experiments apart (an
-experiment label that lets the network memorise per-experiment offsets); from three on, a smooth
-dependence on it is what fits."""
+"""A parameter is a *network* input under ``auto`` when it takes at least this many distinct values
+across the training experiments. The number is not a tuning: two points are always joined by a line
+exactly, so a dependence on a parameter seen at two values cannot be tested by the data — a network
+given it could shape one function per value and memorise each experiment. A third value tests the
+shape. (Formulas are held to the same principle by their constants, not by a count:
+:func:`scale_parameters`.)"""
 
 
 def informative_parameters(problem: Problem, min_values: int = MIN_PARAMETER_VALUES) -> list[str]:
@@ -36,6 +38,18 @@ def informative_parameters(problem: Problem, min_values: int = MIN_PARAMETER_VAL
         if distinct.size >= min_values:
             out.append(name)
     return out
+
+
+def scale_parameters(problem: Problem) -> list[str]:
+    """Parameters that differ between the training experiments (two values are enough) but are not
+    network inputs (:func:`informative_parameters`): the formula search may use each only as a *scale*
+    of a form of the states and inputs — one constant times the parameter times the form (``c·p·u``)
+    or divided by it. Such a formula cannot memorise the experiments: its constant is shared, so the
+    ratio between two experiments' terms is fixed by the parameter, and the recordings of both test
+    it. A free regression variable could (``c1 + c2·p`` fits any two per-experiment offsets), so the
+    parameter is never one (:mod:`physmend.symbolic.scaled`)."""
+    network = set(informative_parameters(problem))
+    return [p for p in informative_parameters(problem, 2) if p not in network]
 
 
 def identity_states(problem: Problem) -> list[str]:

@@ -131,10 +131,18 @@ def simulate_batch(
     options: dict | None = None,
     params: torch.Tensor | None = None,
     u0: torch.Tensor | None = None,
+    box: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> Trajectories:
-    """Simulate the model as written for every experiment of ``batch`` in one batched solve."""
+    """Simulate the model as written for every experiment of ``batch`` in one batched solve.
+
+    ``box = (lo, hi)``, each ``(B, n_states)``: the states are held inside it
+    (:func:`physmend.simulate.divergence.projected`; one shared clock), so a model that blows up
+    in finite time is simulated as written up to the box and held at its edge after.
+    """
     p = batch.params if params is None else params
     options = dict(options or {})
+    if box is not None:
+        options["clocks"] = None  # the box is per batch element: every element on the shared clock
     knots = batch.inputs.knots
     inner = knots[(knots > batch.t[0]) & (knots < batch.t[-1])]
     if inner.numel():  # input kinks: step onto them rather than across them
@@ -143,6 +151,10 @@ def simulate_batch(
     if method in CLOCK_METHODS and "clocks" not in options:
         options["clocks"] = own_stops(batch)  # None: one shared clock
     rhs = model.bind(p)
+    if box is not None:
+        from physmend.simulate.divergence import projected
+
+        rhs = projected(rhs, box[0], box[1])
 
     def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
         return rhs(u, inputs_at(batch, t))

@@ -4,10 +4,17 @@ Reports per experiment and output the RMSE and bias against an estimate of the s
 time windows with the largest residuals, and the model variables and inputs that the residual
 (and its drift rate) correlate with. Correlations use training/validation experiments only; test
 experiments are simulated to report their error.
+
+A model as written that diverges — an output leaves the range of the records by more than
+:data:`physmend.simulate.divergence.RANGE_MARGIN` ranges, or the model blows up in finite time —
+is a finding, not a failure: which state, from when (the data's time unit), against which range.
+A model that blows up is simulated held inside the box of its measured states
+(:func:`physmend.simulate.divergence.projected`), so there is a table all the same.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict
 from typing import Any
 
@@ -17,7 +24,8 @@ import torch
 from physmend.explain import residuals as res
 from physmend.explain.clock import axis, clock
 from physmend.problem import Problem, load_problem
-from physmend.simulate import Trajectories, make_batch, simulate_batch
+from physmend.simulate import Batch, SimulationError, Trajectories, make_batch, simulate_batch
+from physmend.simulate.divergence import RANGE_MARGIN, Divergence
 
 STAGE = "diagnose"
 
@@ -133,6 +141,9 @@ def summarise(problem: Problem, analysis: dict[str, Any], cfg: Any) -> str:
         )
     worst = max(analysis["fits"], key=lambda f: f["ratio_to_noise"] if np.isfinite(f["ratio_to_noise"]) else -1)
     lines += ["", "## Verdict", ""]
+    diverged = analysis.get("divergence") or []
+    if diverged:
+        lines += divergence_lines(problem, diverged)
     if worst["ratio_to_noise"] > 3:
         lines.append(
             f"The model misses the recordings: the error reaches {worst['ratio_to_noise']:.1f}× the estimated "
@@ -164,6 +175,63 @@ def summarise(problem: Problem, analysis: dict[str, Any], cfg: Any) -> str:
         resid = ", ".join(f"{x['name']} (r = {x['r']:+.2f})" for x in c["residual"])
         lines.append(f"- **{out}** — drift rate: {rate or 'n/a'}; residual: {resid or 'n/a'}")
     return "\n".join(lines) + "\n"
+
+
+def divergence_lines(problem: Problem, diverged: list[dict[str, Any]]) -> list[str]:
+    """The verdict's paragraph on a model as written that diverges (``diverged``: the
+    :class:`~physmend.simulate.divergence.Divergence` findings as dicts, earliest first)."""
+    first = diverged[0]
+    unit = problem.model.units.get(first["name"], problem.model.units.get(first["output"], ""))
+    out = [f"**The model as written diverges.** First: {_finding(first, problem.time_unit, unit)}.", ""]
+    for d in diverged[1:]:
+        u = problem.model.units.get(d["name"], problem.model.units.get(d["output"], ""))
+        out.append(f"- {_finding(d, problem.time_unit, u)}")
+    if len(diverged) > 1:
+        out.append("")
+    if any(d["blows_up"] for d in diverged):
+        out += ["From that time on the table compares the records with the model held at the edge of that range "
+                f"(the recorded range widened by {RANGE_MARGIN:g} ranges): as written it has no value there.", ""]
+    out += ["Something that holds the state within its range is missing (a sink, a saturation, a crowding term). "
+            "Training keeps the model within the data (multiple shooting from the records): physmend sweep / "
+            "discover go on.", ""]
+    return out
+
+
+def _finding(d: dict[str, Any], time_unit: str, unit: str) -> str:
+    return Divergence(**{**d, "peak": math.inf if d["peak"] is None else d["peak"]}).describe(time_unit, unit)
+
+
+def simulate_as_written(problem: Problem, batch: Batch, cfg: Any) -> tuple[Trajectories, list[Divergence]]:
+    """The model as written on every experiment, and where it diverges (nothing written).
+
+    Where the solve fails and the model can be held inside the box of its measured states
+    (a finite-time blow-up), the held solve's trajectories; the failure is raised where it cannot,
+    or where the held solve reaches no box (the failure is not a divergence)."""
+    from physmend.ude.reference import find_divergence, output_boxes, state_boxes
+
+    opts = {"method": str(cfg.simulate.method), "rtol": float(cfg.simulate.rtol), "atol": float(cfg.simulate.atol),
+            "options": dict(cfg.simulate.options or {})}
+    with torch.no_grad():
+        try:
+            traj = simulate_batch(problem.compiled, batch, **opts)
+            return traj, find_divergence(problem, batch, traj.outputs)
+        except SimulationError as exc:
+            _, _, box_lo, box_hi = output_boxes(problem, batch)
+            lo, hi = state_boxes(problem, batch, box_lo, box_hi)
+            if not bool((torch.isfinite(lo) | torch.isfinite(hi)).any()):
+                raise
+            try:
+                traj = simulate_batch(problem.compiled, batch, **opts, box=(lo, hi))
+            except SimulationError:
+                raise exc from None
+            found = find_divergence(problem, batch, traj.outputs, blows_up=True)
+            if not found:
+                raise exc from None
+            return traj, found
+
+
+def _json_ready(d: Divergence) -> dict[str, Any]:
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.as_dict().items()}
 
 
 def plot_experiment(problem: Problem, t: np.ndarray, traj: Trajectories, b: int) -> Any:
@@ -203,17 +271,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
     problem = load_problem(cfg)
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
-    with torch.no_grad():
-        traj = simulate_batch(
-            problem.compiled,
-            batch,
-            method=str(cfg.simulate.method),
-            rtol=float(cfg.simulate.rtol),
-            atol=float(cfg.simulate.atol),
-            options=dict(cfg.simulate.options or {}),
-        )
+    traj, diverged = simulate_as_written(problem, batch, cfg)
     t = batch.t.cpu().numpy()
     analysis = analyse(problem, traj, t, cfg)
+    if diverged:
+        analysis["divergence"] = [_json_ready(d) for d in diverged]
     summary = summarise(problem, analysis, cfg)
 
     store = open_store(cfg.tracking)
@@ -228,7 +290,12 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             }
         )
         worst = max(analysis["fits"], key=lambda f: f["rmse"] / f["noise"] if f["noise"] > 0 else 0.0, default=None)
-        if worst is not None and worst["noise"] > 0:
+        if diverged:
+            d = diverged[0]
+            how = "blows up in finite time" if d.blows_up else "grows without bound"
+            run_.describe(f"The model as written diverges: {d.name} {how}, leaving the recorded range at "
+                          f"t = {d.time:.4g} {problem.time_unit} (experiment {d.experiment}). Next: physmend sweep.")
+        elif worst is not None and worst["noise"] > 0:
             run_.describe(f"The model as written misses by up to {worst['rmse'] / worst['noise']:.1f}× the estimated sensor "
                           f"noise ({worst['output']}, experiment {worst['experiment']}). Next: physmend sweep.")
         metrics: dict[str, float] = {}
@@ -237,6 +304,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             metrics[f"rmse.{key}"] = f["rmse"]
             metrics[f"bias.{key}"] = f["bias"]
             metrics[f"noise.{key}"] = f["noise"]
+        for d in diverged:
+            metrics.setdefault(f"diverges_at.{d.experiment}", d.time)  # the earliest output of each experiment
         finite = [f["ratio_to_noise"] for f in analysis["fits"] if np.isfinite(f["ratio_to_noise"])]
         if finite:
             metrics["max_rmse_to_noise"] = max(finite)

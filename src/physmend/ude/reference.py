@@ -1,12 +1,17 @@
 """The model as written, simulated on every experiment (the reference the network's inputs are
 normalised from), the solver options, and the training/validation sample masks. Imports ``simulate``;
-no other module of ``physmend.ude``.
+of ``physmend.ude`` only ``measured`` (lazily, for a bounded reference).
+
+A model as written that diverges within the record (:mod:`physmend.simulate.divergence`) is no
+reference for training as it stands; :func:`reference` with ``bounded=True`` (training's) then
+keeps it within the data: see :func:`bounded_states`. A model that does not diverge gets exactly
+the reference it always got.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 import dataclasses
 import math
@@ -17,6 +22,7 @@ from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch, odeint
 from physmend.simulate.batch import inputs_at, own_stops
 from physmend.simulate.core import CLOCK_METHODS, OWN_METHODS
+from physmend.simulate.divergence import Divergence, box_of, first_exits, projected, recorded_range
 from physmend.simulate.initial import estimate_initial, has_unknown
 
 
@@ -29,6 +35,9 @@ class Reference:
     derivs: torch.Tensor  # (T, B, n)
     inputs: torch.Tensor  # (T, B, m)
     observed: torch.Tensor  # (T, B, k)
+    #: where the model as written leaves the records' range (empty: it does not; only a bounded
+    #: reference looks); the states from then on are the bounded ones (:func:`bounded_states`)
+    divergence: list[Divergence] = field(default_factory=list)
 
 
 def _sim_opts(cfg: Any) -> dict[str, Any]:
@@ -68,7 +77,19 @@ def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], bat
     return odeint(f, u0, batch.t, method=sim["method"], rtol=sim["rtol"], atol=sim["atol"], options=options, names=batch.ids)
 
 
-def reference(problem: Problem, cfg: Any) -> Reference:
+def reference(problem: Problem, cfg: Any, *, bounded: bool = False) -> Reference:
+    """The model as written simulated on every experiment of ``problem`` (no gradients).
+
+    ``bounded``: a reference for training — where the model as written diverges (an output leaves
+    its box, :mod:`physmend.simulate.divergence`, or the solve fails as it blows up) the states
+    are kept within the data (:func:`bounded_states`) and the finding is ``divergence``. Without
+    it (the default: a corrected model judged by its simulation) a failing solve raises and a
+    diverging one returns what it gives.
+
+    Raises:
+        SimulationError: a training or validation experiment cannot be simulated (bounded: nor
+            within the box of its records).
+    """
     model = problem.compiled
     batch = make_batch(problem.experiments, model, problem.dtype)
 
@@ -88,12 +109,159 @@ def reference(problem: Problem, cfg: Any) -> Reference:
     with torch.no_grad():
         if has_unknown(batch):  # declared-unknown initial values: the model as written's own estimates
             batch = dataclasses.replace(batch, u0=estimate_initial(outputs, batch, model.state_names))
-        states = held_out_apart(problem, batch, solve)
+        found: list[Divergence] = []
+        if bounded:
+            states, found = bounded_states(problem, batch, solve, sim)
+        else:
+            states = held_out_apart(problem, batch, solve)
         rhs = model.bind(batch.params)
         x = batch.inputs.at(batch.t)
         derivs = rhs(states, x)
         observed = model.observed(states, x, batch.params[None])
-    return Reference(batch, states, derivs, x, observed)
+    return Reference(batch, states, derivs, x, observed, found)
+
+
+def _fitted(problem: Problem) -> torch.Tensor:
+    """``(B,)`` True for the training and validation experiments (the records a range comes from)."""
+    return torch.tensor([e.role in ("train", "validation") for e in problem.experiments])
+
+
+def output_boxes(problem: Problem, batch: Batch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(lo, hi, box_lo, box_hi)``, each ``(k,)``: every output's recorded range over the fitted
+    experiments and its box (:func:`physmend.simulate.divergence.box_of`)."""
+    lo, hi = recorded_range(batch.obs, _fitted(problem))
+    return (lo, hi, *box_of(lo, hi))
+
+
+def state_boxes(problem: Problem, batch: Batch, box_lo: torch.Tensor, box_hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(lo, hi)``, each ``(B, n)``: the box of every state an output measures (``y = g(p)·x``:
+    the output's box divided by ``g`` of each experiment; the narrowest where several do), ``∓inf``
+    for a state no output measures."""
+    from physmend.ude.measured import factors, measured_outputs
+
+    B, n = batch.u0.shape
+    lo = torch.full((B, n), -math.inf, dtype=batch.u0.dtype)
+    hi = torch.full((B, n), math.inf, dtype=batch.u0.dtype)
+    g = factors(problem.model)(batch.params)  # (B, q)
+    for c, (j, i, _) in enumerate(measured_outputs(problem.model)):
+        a, b = box_lo[j] / g[:, c], box_hi[j] / g[:, c]
+        lo[:, i] = torch.maximum(lo[:, i], torch.minimum(a, b).nan_to_num(nan=-math.inf))
+        hi[:, i] = torch.minimum(hi[:, i], torch.maximum(a, b).nan_to_num(nan=math.inf))
+    return lo, hi
+
+
+def find_divergence(problem: Problem, batch: Batch, outputs: torch.Tensor, blows_up: bool = False) -> list[Divergence]:
+    """Every experiment's outputs ``(T, B, k)`` that leave their box within its own record, one
+    :class:`Divergence` per experiment and output, earliest first. ``blows_up``: the outputs come
+    from a solve held in the box because the plain one failed — reaching the box's edge counts."""
+    from physmend.ude.measured import measured_outputs
+
+    lo, hi, box_lo, box_hi = output_boxes(problem, batch)
+    if blows_up:  # a projected solve stops at the edge: reaching it is leaving
+        eps = 1e-6 * (hi - lo).nan_to_num(nan=0.0)
+        box_lo, box_hi = box_lo + eps, box_hi - eps
+    ends = torch.tensor([float(e.obs_time[-1]) for e in problem.experiments], dtype=batch.t.dtype)
+    valid = batch.t[:, None] <= ends[None, :]  # (T, B): within each experiment's own record
+    first = first_exits(outputs, box_lo, box_hi, valid)
+    measures = {j: problem.model.state_names[i] for j, i, _ in measured_outputs(problem.model)}
+    names = problem.model.output_names
+    found = []
+    for b, j in torch.nonzero(first >= 0).tolist():
+        row = int(first[b, j])
+        rows = valid[:, b]
+        y = outputs[rows, b, j]
+        peak = math.inf if blows_up or not bool(torch.isfinite(y).all()) else float(y.abs().max())
+        e = problem.experiments[b]
+        found.append(Divergence(experiment=str(e.id), role=e.role, name=measures.get(j, names[j]), output=names[j],
+                                time=float(batch.t[row]), blows_up=blows_up, low=float(lo[j]), high=float(hi[j]),
+                                box_low=float(box_lo[j]), box_high=float(box_hi[j]), value=float(outputs[row, b, j]),
+                                peak=peak, end=float(ends[b])))
+    return sorted(found, key=lambda d: (d.time, d.experiment, d.output))
+
+
+def bounded_states(problem: Problem, batch: Batch, solve: Callable[[Batch], torch.Tensor],
+                   sim: dict[str, Any]) -> tuple[torch.Tensor, list[Divergence]]:
+    """States ``(T, B, n)`` of the model as written kept within the data, and where it diverges.
+
+    The model as written is solved as always; where no output leaves its box, that is the answer
+    (bit for bit). Where the solve fails, it is solved again held inside the boxes of the measured
+    states (:func:`physmend.simulate.divergence.projected`): exactly as written until it reaches
+    one (a finite-time blow-up), held there after. Where an output leaves its box (first row ``r``
+    of an experiment), from ``r`` on the experiment's measured states are their records (training
+    and validation experiments: linearly interpolated, divided by the output's factor) or held in
+    their box (test experiments: their records decide nothing), and every other state keeps its
+    last value before ``r``. The reference then lies within the data: the network's normalisation,
+    the training box, the time step from its Jacobian and the segment starts all come from it.
+
+    Raises:
+        SimulationError: the plain solve failed and the held one failed as well, or reached no box
+            (the failure is not a divergence): the plain solve's error.
+    """
+    model = problem.compiled
+    p = batch.params[None]
+    try:
+        states = held_out_apart(problem, batch, solve)
+        blows_up = False
+    except SimulationError as exc:
+        _, _, box_lo, box_hi = output_boxes(problem, batch)
+        lo, hi = state_boxes(problem, batch, box_lo, box_hi)
+        if not bool((torch.isfinite(lo) | torch.isfinite(hi)).any()):
+            raise
+        rhs_of = model.bind
+
+        def held(sub: Batch) -> torch.Tensor:
+            idx = [batch.ids.index(i) for i in sub.ids]
+            return simulate_with(projected(rhs_of(sub.params), lo[idx], hi[idx]), sub, sub.u0, sim)
+
+        try:
+            states = held_out_apart(problem, batch, held)
+        except SimulationError:
+            raise exc from None
+        blows_up = True
+        failure = exc
+    x = batch.inputs.at(batch.t)
+    found = find_divergence(problem, batch, model.outputs(states, x, p), blows_up)
+    if not found:
+        if blows_up:
+            raise failure
+        return states, []
+    return _within_data(problem, batch, states, found), found
+
+
+def _within_data(problem: Problem, batch: Batch, states: torch.Tensor, found: list[Divergence]) -> torch.Tensor:
+    """``states (T, B, n)`` with every diverging experiment's rows from its first divergence on
+    replaced as :func:`bounded_states` says."""
+    import numpy as np
+
+    from physmend.ude.measured import factors, measured_outputs
+
+    out = states.clone()
+    t = batch.t
+    _, _, box_lo, box_hi = output_boxes(problem, batch)
+    lo, hi = state_boxes(problem, batch, box_lo, box_hi)
+    g = factors(problem.model)(batch.params)
+    first: dict[str, float] = {}
+    for d in found:
+        first[d.experiment] = min(first.get(d.experiment, math.inf), d.time)
+    tn = t.cpu().numpy()
+    for b, exp in enumerate(problem.experiments):
+        if str(exp.id) not in first:
+            continue
+        r = int(torch.searchsorted(t, torch.tensor(first[str(exp.id)], dtype=t.dtype)))
+        last = out[r - 1, b] if r > 0 else batch.u0[b]
+        last = torch.where(torch.isfinite(last), last, batch.u0[b])
+        out[r:, b] = last  # every state: its last value before the divergence
+        out[r:, b] = torch.clamp(out[r:, b], lo[b], hi[b])
+        if exp.role == "test":
+            continue  # measured states held in their box: a test record decides nothing
+        for c, (j, i, _) in enumerate(measured_outputs(problem.model)):
+            y = batch.obs[:, b, j].cpu().numpy()
+            ok = np.isfinite(y)
+            if not ok.any():
+                continue
+            rec = np.interp(tn[r:], tn[ok], y[ok])
+            out[r:, b, i] = torch.as_tensor(rec, dtype=out.dtype) / g[b, c]
+    return out
 
 
 def held_out_apart(problem: Problem, batch: Batch, solve: Callable[[Batch], torch.Tensor]) -> torch.Tensor:

@@ -72,6 +72,9 @@ def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
     S = len(starts)
     if S == 0:
         raise UDEConfigError("training needs at least one experiment with role 'train'")
+    from physmend.ude.timescale import check_steps
+
+    check_steps(steps, S, dt, problem, [cfg])  # before the grid (2·steps + 1, S) is built
     exp_t = torch.tensor(exp_idx)
     start_t = torch.tensor(starts, dtype=dtype)
     grid = start_t[None, :] + torch.arange(2 * steps + 1, dtype=dtype)[:, None] * (dt / 2)  # (2K+1, S)

@@ -41,7 +41,7 @@ def _setup(problem: Problem, cfg: DictConfig, *, plan: bool = True) -> tuple[Ref
     ref_key = json.dumps([_sim_opts(cfg), str(torch.get_default_device())], sort_keys=True, default=str)
     ref = refs.get(ref_key)
     if ref is None:
-        ref = refs[ref_key] = reference(problem, cfg)
+        ref = refs[ref_key] = reference(problem, cfg, bounded=True)  # within the data where the model diverges
     if not plan:
         return ref, None
     plan_key = (ref_key, float(cfg.train.step), float(cfg.train.segment_length))

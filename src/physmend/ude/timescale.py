@@ -235,31 +235,49 @@ def plan_bytes(plan: Any, problem: Problem, cfgs: list[Any]) -> float:
     ``8 · models · S · K · 4 · (12·n + 2·m + 3·Σ widths)`` bytes for ``S`` segments of ``K`` steps,
     ``n`` states, ``m`` inputs; plus the inputs at every half step.
     """
+    return steps_bytes(int(plan.steps), int(plan.starts.shape[0]), problem, cfgs)
+
+
+def steps_bytes(steps: int, segments: int, problem: Problem, cfgs: list[Any]) -> float:
+    """:func:`plan_bytes` of a plan of ``segments`` segments of ``steps`` RK4 steps each (known
+    before the plan's grid is built)."""
     n, m = len(problem.compiled.state_names), len(problem.compiled.input_names)
-    steps = int(plan.steps) * int(plan.starts.shape[0])
+    total = int(steps) * int(segments)
     per_model = 0.0
     for cfg in cfgs:
         width, depth = int(cfg.ude.width), int(cfg.ude.depth)
-        per_model += 8.0 * steps * 4 * (12 * n + 2 * m + 3 * width * max(depth, 1))
-    return per_model + 8.0 * (2 * steps + plan.starts.shape[0]) * m
+        per_model += 8.0 * total * 4 * (12 * n + 2 * m + 3 * width * max(depth, 1))
+    return per_model + 8.0 * (2 * total + segments) * m
 
 
-def check_budget(plan: Any, problem: Problem, cfgs: list[Any]) -> None:
-    """Refuse, in one line, a training plan whose estimated memory exceeds ``train.memory_limit_gib``."""
-    limit = cfgs[0].train.get("memory_limit_gib", DEFAULT_MEMORY_LIMIT_GIB)
+def memory_limit(cfg: Any) -> float:
+    """``train.memory_limit_gib`` of ``cfg`` (GiB), checked."""
+    limit = cfg.train.get("memory_limit_gib", DEFAULT_MEMORY_LIMIT_GIB)
     try:
         limit = float(limit)
     except (TypeError, ValueError):
         raise TimeSettingError(f"train.memory_limit_gib must be a number of GiB > 0, but got {limit!r}") from None
     if not limit > 0:
         raise TimeSettingError(f"train.memory_limit_gib must be a number of GiB > 0, but got {limit!r}")
-    need = plan_bytes(plan, problem, cfgs)
+    return limit
+
+
+def check_budget(plan: Any, problem: Problem, cfgs: list[Any]) -> None:
+    """Refuse, in one line, a training plan whose estimated memory exceeds ``train.memory_limit_gib``."""
+    check_steps(int(plan.steps), int(plan.starts.shape[0]), float(plan.dt), problem, cfgs)
+
+
+def check_steps(steps: int, segments: int, dt: float, problem: Problem, cfgs: list[Any]) -> None:
+    """:func:`check_budget` of a plan of ``segments`` segments of ``steps`` RK4 steps of ``dt``,
+    before anything of that size is allocated."""
+    limit = memory_limit(cfgs[0])
+    need = steps_bytes(steps, segments, problem, cfgs)
     if need > limit * GIB:
-        total = int(plan.steps) * int(plan.starts.shape[0])
+        total = int(steps) * int(segments)
         raise TimeSettingError(
-            f"the training plan needs about {need / GIB:.1f} GiB ({total} RK4 steps of {plan.dt:g} over the training "
+            f"the training plan needs about {need / GIB:.1f} GiB ({total} RK4 steps of {dt:g} over the training "
             f"records x {len(cfgs)} model(s)), more than train.memory_limit_gib={limit:g}: give a larger train.step "
-            f"(now {plan.dt:g}), train fewer models at once (sweep.group), or use shorter or fewer training records"
+            f"(now {dt:g}), train fewer models at once (sweep.group), or use shorter or fewer training records"
         )
 
 

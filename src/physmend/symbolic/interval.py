@@ -34,6 +34,7 @@ than :data:`MAX_NODES` nodes is refused unread (symbolic regression's formulas h
 
 from __future__ import annotations
 
+import re
 from collections.abc import Hashable, Mapping
 
 import sympy as sp
@@ -45,13 +46,20 @@ from physmend.modeling.units import is_affine
 MAX_NODES = 5000
 #: a rate with more operations than this is not expanded to test it for zero (it counts as not zero)
 MAX_EXPAND_OPS = 200
-#: the longest sub-expression quoted in a reason (the reason stays within 100 characters)
+#: the longest sub-expression quoted in a reason, and the longest reason
 _QUOTE = 30
+_REASON = 100
+_DIGITS = re.compile(r"(\d\.\d{3})\d+|(\d{2,}\.\d)\d+|(\d\.\d{2})\d+")
 
 
-def _quote(e: sp.Basic) -> str:
-    text = abs_bars(sp.sstr(e, order="none", full_prec=False))  # unordered: printing is most of a refusal's cost
-    return text if len(text) <= _QUOTE else text[: _QUOTE - 1] + "…"
+def _text(e: sp.Basic) -> str:
+    """``e`` as short text: unordered (printing is most of a refusal's cost), constants cut to a few digits."""
+    text = abs_bars(sp.sstr(e, order="none", full_prec=False))
+    return _DIGITS.sub(lambda m: next(g for g in m.groups() if g), text)
+
+
+def _clip(text: str, size: int) -> str:
+    return text if len(text) <= size else text[: size - 1] + "…"
 
 
 def _zero(r: sp.Expr) -> bool:
@@ -75,9 +83,12 @@ def shift_violation(expr: sp.Basic, shifted: Mapping[sp.Symbol, Hashable]) -> st
     Returns:
         A reason of at most 100 characters naming the offending sub-expression, or None.
     """
-    if not shifted or not (expr.free_symbols & set(shifted)):
-        return None
-    size = sum(1 for _ in sp.preorder_traversal(expr))
+    try:
+        if not shifted or not (expr.free_symbols & set(shifted)):
+            return None
+        size = sum(1 for _ in sp.preorder_traversal(expr))
+    except RecursionError:  # nested deeper than Python's stack: no formula a back end returns
+        return "too deeply nested to check for interval-scale quantities"
     if size > MAX_NODES:
         return f"too large to check for interval-scale quantities ({size} nodes > {MAX_NODES})"
     scales = sorted({str(g) for g in shifted.values()})
@@ -89,9 +100,15 @@ def shift_violation(expr: sp.Basic, shifted: Mapping[sp.Symbol, Hashable]) -> st
     class _Refused(Exception):
         pass
 
-    def refuse(what: str, scale: int) -> None:
-        why = f"{what} depends on the zero of {scales[scale]}"
-        raise _Refused(why if len(why) <= 100 else why[:99] + "…")
+    def refuse(template: str, parts: tuple[sp.Basic, ...], scale: int) -> None:
+        """Raise the reason: ``template`` with the quoted ``parts`` ({0}, {1}), shortened to fit."""
+        texts = [_text(p) for p in parts]
+        tail = f" depends on the zero of {scales[scale]}"
+        for size in (_QUOTE, 20, 12, 6):
+            why = template.format(*[_clip(t, size) for t in texts]) + tail
+            if len(why) <= _REASON:
+                break
+        raise _Refused(_clip(why, _REASON))
 
     def moved(rates: list[sp.Expr]) -> int | None:
         """The first scale whose rate is not zero, or None."""
@@ -107,7 +124,7 @@ def shift_violation(expr: sp.Basic, shifted: Mapping[sp.Symbol, Hashable]) -> st
                 continue
             k = moved(rate(a))
             if k is not None:
-                refuse(f"{_quote(e)}: the argument {_quote(a)}", k)
+                refuse("{0}: the argument {1}", (e, a), k)
 
     def rate(e: sp.Basic) -> list[sp.Expr]:
         if e in memo:
@@ -124,7 +141,7 @@ def shift_violation(expr: sp.Basic, shifted: Mapping[sp.Symbol, Hashable]) -> st
             dep = [(f, r, moved(r)) for f, r in parts]
             dep = [(f, r, k) for f, r, k in dep if k is not None]
             if len(dep) > 1:
-                refuse(f"product of {_quote(dep[0][0])} and {_quote(dep[1][0])}: each", dep[0][2])
+                refuse("product of {0} and {1}: each", (dep[0][0], dep[1][0]), dep[0][2])
             if not dep:
                 out = zero
             else:
@@ -136,7 +153,7 @@ def shift_violation(expr: sp.Basic, shifted: Mapping[sp.Symbol, Hashable]) -> st
             for part in (ex, base):
                 k = moved(rate(part))
                 if k is not None and ex != 1:
-                    refuse(f"{_quote(e)}: the {'base' if part is base else 'exponent'} {_quote(part)}", k)
+                    refuse("{0}: the " + ("base" if part is base else "exponent") + " {1}", (e, part), k)
             out = zero
         elif isinstance(e, (sp.Min, sp.Max)):
             parts = [rate(a) for a in e.args]
@@ -144,7 +161,7 @@ def shift_violation(expr: sp.Basic, shifted: Mapping[sp.Symbol, Hashable]) -> st
                 first = parts[0][k]
                 if not first.is_number or any(not _zero(p[k] - first) for p in parts[1:]):
                     bad = next((a for a, p in zip(e.args, parts) if not _zero(p[k])), e.args[0])
-                    refuse(f"{_quote(e)} compares {_quote(bad)}, which", k)
+                    refuse("{0} compares {1}, which", (e, bad), k)
             out = parts[0]
         else:  # any other function or condition: every argument must not move with the zero
             check_args(e)
@@ -156,6 +173,8 @@ def shift_violation(expr: sp.Basic, shifted: Mapping[sp.Symbol, Hashable]) -> st
         rate(expr)
     except _Refused as exc:
         return str(exc)
+    except RecursionError:
+        return f"too deeply nested to check for interval-scale quantities ({size} nodes)"
     return None
 
 

@@ -14,7 +14,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 
-SWEEP_KEYS = ("n_trials", "space", "group", "group_shapes")
+SWEEP_KEYS = ("n_trials", "space", "group", "group_shapes", "budget", "max_trials")
 """``discover.<key>`` sets ``sweep.<key>`` unless the command line gives ``sweep.<key>`` itself."""
 
 
@@ -39,8 +39,11 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
         raise ConfigError(f"discover.group_shapes must be true or false, but got {shapes!r}")
     given = {_key(o) for o in overrides or ()}
     cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    budget = cfg.discover.get("budget")
     chosen = {"n_trials": int(cfg.discover.n_trials), "space": str(cfg.discover.space),
-              "group": int(cfg.discover.get("group", 1)), "group_shapes": shapes}
+              "group": int(cfg.discover.get("group", 1)), "group_shapes": shapes,
+              "budget": None if budget is None else float(budget),
+              "max_trials": cfg.discover.get("max_trials")}
     for key in SWEEP_KEYS:
         if f"sweep.{key}" not in given:
             cfg.sweep[key] = chosen[key]

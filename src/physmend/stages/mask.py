@@ -74,6 +74,15 @@ def _val(result: Any) -> float:
     return float("nan") if isinstance(result, Exception) else float(result.val_rmse)
 
 
+def _val_text(result: Any) -> str:
+    """A candidate's validation RMSE for the printout; where it has none, why (the error, one line)."""
+    if isinstance(result, Exception):
+        from physmend.sweep.restart import one_line
+
+        return f"nan ({one_line(result)})"
+    return f"{_val(result):.4g}"
+
+
 def best_retrained(tried: list[tuple[list[str], Any]], tolerance: float = 0.0) -> tuple[list[str], Any]:
     """The equation set whose retrained network validates best (training and validation experiments
     only) — or a smaller set whose validation RMSE is within ``(1 + tolerance)`` of that best (fewest
@@ -270,7 +279,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     if len(tried) > 1:
         lines += ["", "Each candidate set retrained alone (the ranking favours equations a warm start could fit; "
                       "a hidden state's equation may explain the data better):"]
-        lines += [f"  {', '.join(names)}: validation RMSE {_val(r):.4g}"
+        lines += [f"  {', '.join(names)}: validation RMSE {_val_text(r)}"
                   + (" (the source network masked to it, not retrained)" if isinstance(r, SourceNetwork) and not own_set(names) else "")
                   + (f" (its first training never validated better than its warm start: trained again with "
                      f"{int(mc.retrain_epochs)}× the epochs, the better of the two shown)"

@@ -38,7 +38,8 @@ def run(
     not pick the space) no longer searched, said in one line.
 
     Everything the user gave (space, settings, model, data, source run) is checked before any run
-    is written. A diverging trial is recorded FAIL and the sweep goes on; Ctrl-C records the
+    is written. A diverging trial is restarted (``sweep.restarts``, :mod:`physmend.sweep.restart`), and
+    recorded FAIL where no restart finishes it; the sweep goes on. Ctrl-C records the
     running trial FAIL (its run KILLED) and re-raises ``KeyboardInterrupt``.
     """
     from physmend.problem import load_problem

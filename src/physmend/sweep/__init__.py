@@ -39,8 +39,17 @@ Interrupted trials
     runs a fresh trial in their place. They are not re-enqueued — a configuration that crashed
     its worker is not retried blindly.
 
+Divergence and budget
+    A trial whose training diverges is restarted (``sweep.restarts``, each time with the learning
+    rate /3 and segments /2) before it counts as failed; the summary states the divergence rate
+    (:mod:`physmend.sweep.restart`). With ``sweep.budget`` (s of wall time) the sweep runs
+    ``n_trials`` trials, then as many more as the budget allows at what those cost, ``max_trials``
+    at most (:mod:`physmend.sweep.budget`; ``physmend discover`` sweeps this way).
+
 Modules (imports go one way, top to bottom; nothing here imports :mod:`physmend.stages`)
     ``space``     search-space files, parsing, sampling into Hydra overrides
+    ``restart``   which errors restart a trial, and with which settings
+    ``budget``    how many trials a budget allows
     ``settings``  the checked ``sweep.*`` options, sampler and pruner, the keys that shape a stack
     ``configs``   each trial's composed configuration and problem
     ``storage``   the Optuna storage and study: open, fingerprint, tally

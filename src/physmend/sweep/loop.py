@@ -15,13 +15,14 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from physmend.redact import redact
 from physmend.config import ConfigError
 from physmend.sweep.configs import TrialConfigs
 from physmend.sweep.parent import _finish_parent
 from physmend.sweep.report import Reporter, _log_result, _say, _show, summary
+from physmend.sweep.restart import RESTARTS_ATTR, one_line
 from physmend.sweep.settings import Settings, shape_keys
 from physmend.sweep.space import SearchSpace
 from physmend.sweep.storage import REASON_ATTR, RUN_ID_ATTR, Tally, WORKER_ATTR, _uncounted, tally
@@ -42,6 +43,7 @@ class Outcome:
     value: float | None = None
     run_id: str | None = None
     reason: str = ""
+    restarts: int = 0  # trainings restarted after divergence (sweep.restarts)
 
 
 
@@ -60,17 +62,53 @@ class Sweep:
     train: Callable[..., Any]
     me: dict[str, Any] = field(default_factory=_worker)
     failures_in_a_row: int = 0
+    bar: Any = None  # the progress bar of the running loop (messages are written above it)
+    target: int | None = None  # trials the study has in the end (sweep.n_trials, or the budget's decision)
+    budget_line: str = ""  # the budget's decision, for the summary
+
+    @property
+    def n_trials(self) -> int:
+        """Trials the study should have in the end: ``sweep.n_trials``, or with ``sweep.budget`` the
+        budget's decision once made (until then the minimum, ``sweep.n_trials``)."""
+        return self.settings.n_trials if self.target is None else self.target
+
+    def apply_budget(self, bar: Any) -> None:
+        """With ``sweep.budget``: once ``sweep.n_trials`` trials reached a verdict, decide how many the
+        study has in the end (:mod:`physmend.sweep.budget`), once per study (stored with it; a
+        resumed sweep and other workers use the stored decision)."""
+        from physmend.sweep.budget import BUDGET_ATTR, wall_span
+        from physmend.sweep.storage import _uncounted
+
+        budget = self.settings.budgeted
+        if budget is None or self.target is not None:
+            return
+        stored = self.study.user_attrs.get(BUDGET_ATTR)
+        if not budget.matches(stored):
+            finished = [t for t in self.study.get_trials(deepcopy=False) if t.state.is_finished() and not _uncounted(t)]
+            if len(finished) < budget.min_trials:
+                return
+            finished = sorted(finished, key=lambda t: t.number)[: budget.min_trials]
+            stored = budget.decision(wall_span(finished), len(finished))
+            self.study.set_user_attr(BUDGET_ATTR, stored)
+            stored = self.study.user_attrs.get(BUDGET_ATTR, stored)  # another worker may have decided first
+        self.target = int(stored["trials"])
+        self.budget_line = budget.describe(stored)
+        if bar is not None:
+            bar.total = self.target
+            _say(bar, self.budget_line)
 
     # ---- the loop
     def loop(self, bar: Any) -> list[Outcome]:
         """Ask, train and tell until the study has ``n_trials`` trials or time runs out."""
         start = time.monotonic()
+        self.bar = bar
         outcomes: list[Outcome] = []
         while True:
             self.fail_stale_trials(bar)
             counts = tally(self.study.get_trials(deepcopy=False))
+            self.apply_budget(bar)
             _show(bar, counts)
-            if counts.counted + counts.running >= self.settings.n_trials:
+            if counts.counted + counts.running >= self.n_trials:
                 break
             if self.settings.timeout is not None and time.monotonic() - start >= self.settings.timeout:
                 _say(bar, f"sweep.timeout of {self.settings.timeout:g} s reached; no new trial is started")
@@ -94,7 +132,7 @@ class Sweep:
         """Trials to ask together: ``sweep.group``, but while fewer than ``pruner_startup_trials``
         trials are complete only the missing ones: the median pruner has nothing to compare with
         yet, so a first group would otherwise train every one of its trials to the end."""
-        size = min(self.settings.group, self.settings.n_trials - counts.counted - counts.running)
+        size = min(self.settings.group, self.n_trials - counts.counted - counts.running)
         missing = self.settings.pruner_startup_trials - counts.complete
         if self.settings.pruner == "median" and missing > 0:  # halving compares trials from the first one on
             size = min(size, missing)
@@ -166,41 +204,73 @@ class Sweep:
         return [outcomes[t.number] for t, _ in asked]
 
     def _train_group(self, members: list[tuple[Any, dict[str, Any], DictConfig, Any]]) -> dict[int, Outcome]:
-        """Train one stack; then log each trial's buffered metrics and result to its own child run."""
+        """Train one stack; then log each trial's buffered metrics and result to its own child run.
+        Trials whose training diverged are trained again together, as a stack of their restarts
+        (:mod:`physmend.sweep.restart`), until each finished or has no restart left."""
+        import optuna
+
+        from physmend.sweep.restart import Attempts, describe
         from physmend.ude.stacked import train_stack
 
         reporters = [Reporter(trial, None, self.settings.pruned_because) for trial, *_ in members]
-        try:
-            results: list[Any] = train_stack([cfg for _, _, cfg, _ in members], members[0][3],
-                                             report=lambda i, epoch, row: reporters[i](epoch, row),
+        attempts = [Attempts(cfg, self.settings.restarts) for _, _, cfg, _ in members]
+        results: list[Any] = [None] * len(members)
+        todo = list(range(len(members)))
+        while todo:
+            try:
+                got: list[Any] = train_stack([attempts[i].current for i in todo], members[0][3],
+                                             report=lambda j, epoch, row, todo=todo: reporters[todo[j]](epoch, row),
                                              final_eval="batched", figures=self.settings.figures)
-        except Exception as exc:  # noqa: BLE001 - the whole stack failed: every trial FAILs, the sweep goes on
-            results = [exc] * len(members)
+            except Exception as exc:  # noqa: BLE001 - the whole stack failed: each trial's outcome
+                got = [exc] * len(todo)
+            again = []
+            for i, result in zip(todo, got):
+                if not isinstance(result, BaseException) and not math.isfinite(float(result.val_rmse)):
+                    result = FloatingPointError(f"the final val.rmse is not finite ({float(result.val_rmse)})")
+                if (isinstance(result, Exception) and not isinstance(result, optuna.TrialPruned)
+                        and attempts[i].restart_after(result)):
+                    trial = members[i][0]
+                    trial.set_user_attr(RESTARTS_ATTR, attempts[i].restarts)
+                    reporters[i] = reporters[i].restarted()
+                    _say(self.bar, f"trial {trial.number} diverged ({attempts[i].reasons[-1]}); restart "
+                                   f"{attempts[i].restarts} of {self.settings.restarts} with {describe(attempts[i].changes)}")
+                    again.append(i)
+                else:
+                    results[i] = attempts[i].final(result) if isinstance(result, Exception) else result
+            todo = again
         out: dict[int, Outcome] = {}
-        for (trial, values, cfg, _), reporter, result in zip(members, reporters, results):
+        for (trial, values, cfg, _), reporter, result, tried in zip(members, reporters, results, attempts):
             holder: dict[str, str] = {}
             try:
-                out[trial.number] = self._log_stacked(trial, values, cfg, reporter, result, holder)
+                out[trial.number] = self._log_stacked(trial, values, tried, reporter, result, holder)
             except Exception as exc:  # noqa: BLE001 - diverged, solver failure, anything: FAIL
                 self._mark_child(holder.get("run_id"), "FAIL")
                 out[trial.number] = Outcome(trial.number, "FAIL", run_id=holder.get("run_id"),
-                                            reason=f"{type(exc).__name__}: {exc}")
+                                            reason=f"{type(exc).__name__}: {exc}", restarts=tried.restarts)
         return out
 
-    def _log_stacked(self, trial: "optuna.Trial", values: dict[str, Any], cfg: DictConfig, reporter: "Reporter",
+    def _log_stacked(self, trial: "optuna.Trial", values: dict[str, Any], attempts: Any, reporter: "Reporter",
                      result: Any, holder: dict[str, str]) -> Outcome:
+        """``attempts``: the trial's :class:`~physmend.sweep.restart.Attempts` (the child run's config is
+        the last attempt's)."""
         import mlflow
         import optuna
 
+        from physmend.sweep.restart import OVERRIDES_TAG, REASONS_TAG, RESTARTS_TAG, describe
         from physmend.tracking import selection as sel
 
-        with self._child_run(trial, values, cfg, holder, {"physmend.stacked": "true"}) as run_:
+        tags = {"physmend.stacked": "true"}
+        if attempts.restarts:
+            tags.update({RESTARTS_TAG: str(attempts.restarts), REASONS_TAG: " | ".join(attempts.reasons)[:5000],
+                         OVERRIDES_TAG: describe(attempts.changes)})
+        with self._child_run(trial, values, attempts.current, holder, tags) as run_:
             for epoch, metrics in reporter.buffered:
                 run_.log_metrics(metrics, step=epoch)
             if isinstance(result, optuna.TrialPruned):
                 run_.set_tags({sel.TRIAL_STATE_TAG: "PRUNED", "physmend.pruned": str(result) or "pruned"})
                 mlflow.end_run("KILLED")
-                return Outcome(trial.number, "PRUNED", value=reporter.last_value, run_id=run_.run_id, reason=str(result))
+                return Outcome(trial.number, "PRUNED", value=reporter.last_value, run_id=run_.run_id, reason=str(result),
+                               restarts=attempts.restarts)
             if isinstance(result, BaseException):
                 raise result
             value = float(result.val_rmse)
@@ -208,11 +278,11 @@ class Sweep:
                 raise FloatingPointError(f"the final val.rmse is not finite ({value})")
             _log_result(run_, result, step=reporter.last_epoch + 1, figures=self.settings.figures)
             run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE"})
-        return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id)
+        return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id, restarts=attempts.restarts)
 
     def _after(self, outcome: Outcome, bar: Any) -> None:
         if outcome.state == "FAIL":
-            _say(bar, f"trial {outcome.number} failed: {outcome.reason}")
+            _say(bar, f"trial {outcome.number} failed: {one_line(outcome.reason, 1000)}")
             self.failures_in_a_row += 1
             limit = self.settings.max_failures_in_a_row
             if limit and self.failures_in_a_row >= limit:
@@ -254,7 +324,7 @@ class Sweep:
             t for t in self.study.get_trials(deepcopy=False)
             if t.number < trial.number and (t.state == TrialState.RUNNING or (t.state.is_finished() and not _uncounted(t)))
         ]
-        return len(ahead) >= self.settings.n_trials
+        return len(ahead) >= self.n_trials
 
     def tell(self, trial: "optuna.Trial", outcome: Outcome) -> None:
         from optuna.trial import TrialState
@@ -310,22 +380,45 @@ class Sweep:
         import mlflow
         import optuna
 
+        from physmend.sweep.restart import Attempts
         from physmend.tracking import selection as sel
 
         with self._child_run(trial, values, cfg, holder) as run_:
             reporter = Reporter(trial, run_, self.settings.pruned_because)
-            try:
-                result = self.train(cfg, problem, report=reporter)
-            except optuna.TrialPruned as exc:
-                run_.set_tags({sel.TRIAL_STATE_TAG: "PRUNED", "physmend.pruned": str(exc) or "pruned"})
-                mlflow.end_run("KILLED")
-                return Outcome(trial.number, "PRUNED", value=reporter.last_value, run_id=run_.run_id, reason=str(exc))
-            value = float(result.val_rmse)
-            if not math.isfinite(value):
-                raise FloatingPointError(f"the final val.rmse is not finite ({value})")
+            attempts = Attempts(cfg, self.settings.restarts)
+            while True:
+                try:
+                    result = self.train(attempts.current, problem, report=reporter)
+                    value = float(result.val_rmse)
+                    if not math.isfinite(value):
+                        raise FloatingPointError(f"the final val.rmse is not finite ({value})")
+                    break
+                except optuna.TrialPruned as exc:
+                    run_.set_tags({sel.TRIAL_STATE_TAG: "PRUNED", "physmend.pruned": str(exc) or "pruned"})
+                    mlflow.end_run("KILLED")
+                    return Outcome(trial.number, "PRUNED", value=reporter.last_value, run_id=run_.run_id,
+                                   reason=str(exc), restarts=attempts.restarts)
+                except Exception as exc:  # noqa: BLE001 - divergence restarts the trial; anything else FAILs it
+                    if not attempts.restart_after(exc):
+                        raise attempts.final(exc) from None
+                    self._record_restart(trial, attempts, run_)
+                    reporter = reporter.restarted()
             _log_result(run_, result, step=reporter.last_epoch + 1, figures=self.settings.figures)
             run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE"})
-        return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id)
+        return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id, restarts=attempts.restarts)
+
+    def _record_restart(self, trial: "optuna.Trial", attempts: Any, run_: Any) -> None:
+        """A restart of ``trial`` (:class:`physmend.sweep.restart.Attempts`) on its Optuna trial and child
+        run (tags, and the ``config.yaml`` later stages load), and one line on the terminal."""
+        from physmend.sweep.restart import OVERRIDES_TAG, REASONS_TAG, RESTARTS_ATTR, RESTARTS_TAG, describe
+
+        n = attempts.restarts
+        trial.set_user_attr(RESTARTS_ATTR, n)
+        run_.set_tags({RESTARTS_TAG: str(n), REASONS_TAG: " | ".join(attempts.reasons)[:5000],
+                       OVERRIDES_TAG: describe(attempts.changes)})
+        run_.log_text(OmegaConf.to_yaml(attempts.current, resolve=True), "config.yaml")
+        _say(self.bar, f"trial {trial.number} diverged ({attempts.reasons[-1]}); restart {n} of "
+                       f"{self.settings.restarts} with {describe(attempts.changes)}")
 
     def _mark_child(self, run_id: str | None, state: str, *, error: str | None = None) -> None:
         from physmend.tracking import ERROR_TAG
@@ -387,7 +480,7 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
     """Run this worker's loop, then wait for the ``helpers`` (worker processes) before the summary."""
     from tqdm import tqdm
 
-    bar = tqdm(total=sweep.settings.n_trials, desc=f"sweep {sweep.study.study_name}", unit="trial",
+    bar = tqdm(total=sweep.n_trials, desc=f"sweep {sweep.study.study_name}", unit="trial",
                file=sys.stderr, disable=not sweep.settings.progress, dynamic_ncols=True)
     status = "FINISHED"
     try:

@@ -102,7 +102,7 @@ def _finish_parent(sweep: Sweep, status: str) -> Tally:
     from mlflow.entities import Metric
 
     client.log_batch(parent, metrics=[Metric(k, float(v), ts, 0) for k, v in metrics.items()])
-    client.set_tag(parent, "physmend.n_trials", str(sweep.settings.n_trials))
+    client.set_tag(parent, "physmend.n_trials", str(sweep.n_trials))
     if counts.running == 0:  # otherwise the last worker to finish ends it
         client.set_terminated(parent, status)
     return counts

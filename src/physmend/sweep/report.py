@@ -21,28 +21,46 @@ if TYPE_CHECKING:
 class Reporter:
     """The ``report`` callback of one trial: per-epoch metrics to MLflow, pruning via Optuna."""
 
-    def __init__(self, trial: "optuna.Trial", run_: Any, because: str) -> None:
+    def __init__(self, trial: "optuna.Trial", run_: Any, because: str, *, step_offset: int = 0,
+                 reported: int = -1) -> None:
         """``run_`` None: metrics are kept in ``buffered`` (a stacked trial's run is written afterwards);
-        ``because``: how the pruner compares (:attr:`Settings.pruned_because`, ends a pruned trial's message)."""
+        ``because``: how the pruner compares (:attr:`Settings.pruned_because`, ends a pruned trial's message).
+
+        A restarted trial's reporter (:meth:`restarted`) logs its epochs after the earlier attempts'
+        (``step_offset``: MLflow step of its epoch 0), and reports to Optuna only epochs past
+        ``reported`` (the last epoch an earlier attempt reported: Optuna keeps one value per step)."""
         self.trial, self.run_, self.because = trial, run_, because
-        self.last_epoch = 0
+        self.step_offset = step_offset
+        self.reported = reported
+        self.last_epoch = step_offset
         self.last_value: float | None = None
         self.buffered: list[tuple[int, dict[str, float]]] = []
+
+    def restarted(self) -> "Reporter":
+        """The reporter of this trial's next attempt (a restart after divergence): its MLflow steps
+        follow this attempt's, its buffered metrics are kept."""
+        nxt = Reporter(self.trial, self.run_, self.because, step_offset=self.last_epoch + 1, reported=self.reported)
+        nxt.last_value, nxt.buffered = self.last_value, self.buffered
+        return nxt
 
     def __call__(self, epoch: int, metrics: dict[str, float]) -> None:
         import optuna
 
         epoch = int(epoch)
-        self.last_epoch = max(self.last_epoch, epoch)
+        step = epoch + self.step_offset
+        self.last_epoch = max(self.last_epoch, step)
         finite = {k: float(v) for k, v in metrics.items() if k != "epoch" and v is not None and math.isfinite(float(v))}
         if self.run_ is None:
-            self.buffered.append((epoch, finite))
+            self.buffered.append((step, finite))
         else:
-            self.run_.log_metrics(finite, step=epoch)
+            self.run_.log_metrics(finite, step=step)
         value = finite.get("val.rmse")
         if value is None:
             return
         self.last_value = value
+        if epoch <= self.reported:  # an earlier attempt reported this epoch: Optuna keeps the first value
+            return
+        self.reported = epoch
         self.trial.report(value, epoch)
         if self.trial.should_prune():
             raise optuna.TrialPruned(f"pruned at epoch {epoch}: val.rmse {value:.4g} is {self.because}")
@@ -89,6 +107,27 @@ def _show(bar: Any, counts: Tally) -> None:
 
 
 
+def divergence(trials: Any, restarts: int) -> str:
+    """The sweep's divergence rate, one line: of the trials that reached a verdict, how many diverged
+    and were restarted (``sweep.restarts`` at most each), how many of those still failed, and how
+    many failed in all (each failure's reason is on its own line above and in its run)."""
+    from optuna.trial import TrialState
+
+    from physmend.sweep.restart import RESTARTS_ATTR
+    from physmend.sweep.storage import _uncounted
+
+    counted = [t for t in trials if t.state.is_finished() and not _uncounted(t)]
+    again = [t for t in counted if int(t.user_attrs.get(RESTARTS_ATTR, 0) or 0) > 0]
+    lost = [t for t in again if t.state == TrialState.FAIL]
+    failed = sum(t.state == TrialState.FAIL for t in counted)
+    if not again:
+        return (f"divergence: no trial of {len(counted)} diverged" if not failed
+                else f"divergence: no trial of {len(counted)} was restarted; {failed} failed (reasons above)")
+    return (f"divergence: {len(again)} of {len(counted)} trials diverged and were restarted (up to {restarts}× with "
+            f"a smaller learning rate and shorter segments): {len(again) - len(lost)} then trained to the end or were "
+            f"pruned, {len(lost)} failed; {failed} of {len(counted)} failed in all")
+
+
 def summary(sweep: Sweep, counts: Tally) -> str:
     """What the sweep found and the exact next commands."""
     from physmend.tracking import selection as sel
@@ -97,10 +136,13 @@ def summary(sweep: Sweep, counts: Tally) -> str:
     tags = parent.data.tags
     lines = [
         f"sweep {sweep.study.study_name} (space {sweep.space.label}), run {sweep.parent_run_id}:",
-        f"  {counts.counted} of {sweep.settings.n_trials} trials: {counts.complete} complete, {counts.pruned} pruned, "
+        f"  {counts.counted} of {sweep.n_trials} trials: {counts.complete} complete, {counts.pruned} pruned, "
         f"{counts.failed} failed" + (f" ({counts.uncounted} interrupted, not counted)" if counts.uncounted else "")
         + (f"; {counts.running} still running in other workers" if counts.running else ""),
     ]
+    if sweep.budget_line:
+        lines.append(f"  {sweep.budget_line}")
+    lines.append(f"  {divergence(sweep.study.get_trials(deepcopy=False), sweep.settings.restarts)}")
     best = tags.get(sel.BEST_TAG)
     if best is None or counts.best_value is None:
         lines += ["  no trial finished training, so nothing is selected.",

@@ -4,6 +4,7 @@ searched keys that shape a stacked solve. Imports :mod:`physmend.sweep.space`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -14,6 +15,8 @@ from physmend.sweep.space import SearchSpace
 if TYPE_CHECKING:
     import optuna
 
+    from physmend.sweep.budget import Budget
+
 
 SAMPLERS = ("tpe", "random")
 
@@ -23,7 +26,12 @@ PRUNERS = ("median", "halving", "none")
 
 @dataclass(frozen=True)
 class Settings:
-    """``cfg.sweep``, checked on construction."""
+    """``cfg.sweep``, checked on construction.
+
+    ``restarts``: trainings of a diverged trial restarted before it fails (:mod:`physmend.sweep.restart`).
+    ``budget`` (s of wall time, None: none) and ``max_trials``: the study has ``n_trials`` trials at
+    least and as many more as the budget allows, ``max_trials`` at most (:mod:`physmend.sweep.budget`).
+    """
 
     space: str
     n_trials: int
@@ -44,6 +52,19 @@ class Settings:
     figures: bool = True
     workers: int = 1
     group_shapes: bool = True
+    restarts: int = 2
+    budget: float | None = None
+    max_trials: int | None = None
+
+    @property
+    def budgeted(self) -> "Budget | None":
+        """The sweep's :class:`~physmend.sweep.budget.Budget` (``sweep.budget``), or None: ``n_trials`` trials."""
+        from physmend.sweep.budget import Budget
+
+        if self.budget is None:
+            return None
+        low = max(1, self.n_trials)
+        return Budget(self.budget, low, max(low, self.max_trials or low))
 
     @classmethod
     def from_cfg(cls, sweep: Any) -> Settings:
@@ -71,6 +92,10 @@ class Settings:
         if pruner not in PRUNERS:
             raise ConfigError(f"sweep.pruner must be one of {list(PRUNERS)}, but got {pruner!r}")
         name = sweep.get("study_name")
+        budget = number("budget", float, 0, optional=True)
+        if budget is not None and not (budget > 0 and math.isfinite(budget)):
+            raise ConfigError(f"sweep.budget must be a finite number of seconds > 0 or null, but got {sweep.get('budget')!r}")
+        max_trials = number("max_trials", int, 1, optional=True)  # below n_trials: n_trials (the least)
         return cls(
             space=str(sweep.get("space", "default")),
             n_trials=number("n_trials", int, 0),
@@ -91,6 +116,9 @@ class Settings:
             figures=bool(sweep.get("figures", True)),
             workers=number("workers", int, 1) if sweep.get("workers") is not None else 1,
             group_shapes=flag("group_shapes", True),
+            restarts=number("restarts", int, 0) if sweep.get("restarts") is not None else 2,
+            budget=budget,
+            max_trials=max_trials,
         )
 
     def sampler_for(self, trial_index: int) -> "optuna.samplers.BaseSampler":

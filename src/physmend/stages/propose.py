@@ -23,14 +23,17 @@ STAGE = "propose"
 MIN_MECHANISM_R2 = 0.9  # a mechanism is suggested only when its form reproduces the term this well
 
 
-def _simulate(problem: Any, cfg: Any) -> tuple[Any, Any]:
-    from physmend.simulate import make_batch, simulate_batch
+def _simulate(problem: Any, cfg: Any) -> tuple[Any, Any, list[Any]]:
+    """Every experiment of ``problem`` simulated whole, and where the model diverges: a model that
+    blows up (the model as written, or a corrected one on a held-out experiment) is held inside the
+    box of its records from then on and reported, never a failed stage
+    (:func:`physmend.stages.diagnose.simulate_as_written`)."""
+    from physmend.simulate import make_batch
+    from physmend.stages.diagnose import simulate_as_written
 
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
-    with torch.no_grad():
-        traj = simulate_batch(problem.compiled, batch, method=str(cfg.simulate.method), rtol=float(cfg.simulate.rtol),
-                              atol=float(cfg.simulate.atol), options=dict(cfg.simulate.get("options") or {}))
-    return batch, traj
+    traj, diverged = simulate_as_written(problem, batch, cfg)
+    return batch, traj, list(diverged)
 
 
 def _rmse(err: torch.Tensor) -> float:
@@ -72,8 +75,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         local.write_text(Path(corr_path).read_text())
         fixed_cfg.model.corrections = str(local)
         after = load_problem(fixed_cfg)
-    batch, traj0 = _simulate(before, base_cfg)
-    batch1, traj1 = _simulate(after, base_cfg)
+    batch, traj0, diverged0 = _simulate(before, base_cfg)
+    batch1, traj1, diverged1 = _simulate(after, base_cfg)
     outs = before.model.output_names
     rows = []
     for b, e in enumerate(before.experiments):
@@ -143,6 +146,12 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         md.append(f"| {r['experiment']} | {r['role']} | {r['output']} | {r['before']:.3g} | {r['after']:.3g} | "
                   f"{r['improvement']:.1f}× | {r['noise']:.3g} | {r['after'] / r['noise']:.1f} |")
     md.append("")
+    unit_of = before.model.units
+    for label, found in (("model as written", diverged0), ("corrected model", diverged1)):
+        for d in found:
+            md.append(f"- The {label} diverges: {d.describe(before.time_unit, unit_of.get(d.name, ''))}.")
+    if diverged0 or diverged1:
+        md.append("")
     held = [r for r in rows if r["role"] == "test"]
     if held:
         md.append(f"Held-out experiments (never used for any choice): RMSE improved "

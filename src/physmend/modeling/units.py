@@ -58,7 +58,7 @@ class UnitMismatch(ValueError):
 _BASE = {"kg": {"M": 1}, "m": {"L": 1}, "s": {"T": 1}, "K": {"Θ": 1}, "A": {"I": 1}, "mol": {"N": 1},
          "cd": {"J": 1}}
 _DERIVED = {
-    "g": "kg/1", "degC": "K", "degF": "K", "°C": "K", "°F": "K", "rad": "1", "sr": "1", "%": "1", "1": "1",
+    "g": "kg/1", "degC": "K", "degF": "K", "°C": "K", "°F": "K", "rad": "1", "deg": "1", "degree": "1", "°": "1", "rev": "1", "sr": "1", "%": "1", "1": "1",
     "Hz": "1/s", "N": "kg.m/s2", "Pa": "N/m2", "bar": "Pa", "atm": "Pa", "J": "N.m", "W": "J/s",
     "C": "A.s", "V": "W/A", "F": "C/V", "Ohm": "V/A", "Ω": "V/A", "S": "A/V", "Wb": "V.s", "T": "Wb/m2",
     "H": "Wb/A", "L": "m3", "l": "m3", "min": "s", "h": "s", "d": "s", "day": "s", "Wh": "W.h",

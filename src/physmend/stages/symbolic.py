@@ -322,6 +322,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         if front.info.get("unit_rejected"):
             print(f"{state}: {front.info['unit_rejected']} formula(s) left out, their units cannot be the equation's "
                   f"(e.g. {front.info['unit_rejected_examples'][0]})")
+        if front.info.get("interval_rejected"):
+            print(f"{state}: {front.info['interval_rejected']} formula(s) left out, they use a quantity on a scale with "
+                  f"an offset (°C, °F) other than as a difference (e.g. {front.info['interval_rejected_examples'][0]})")
         extra = scaled_variants(front.candidates, scale, columns, y_all[state], operators=operators)
         if select == "recorded":
             extra += catalogue_candidates([*x_names, *scale], units, columns, y_all[state], operators=operators,

@@ -90,6 +90,7 @@ def _study(project: Path, name: str) -> optuna.Study:
     return optuna.load_study(study_name=name, storage=f"sqlite:///{project / 'optuna.db'}")
 
 
+@pytest.mark.slow
 def test_a_cheap_problem_runs_more_trials_within_the_budget_never_more_than_max(
         user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     """Tiny trainings against a budget far above what they take: the sweep goes past its minimum (1)

@@ -25,23 +25,28 @@ def test_only_divergence_restarts_a_trial() -> None:
     assert not diverged(RuntimeError("DefaultCPUAllocator: can't allocate memory"))
 
 
-def test_each_restart_divides_the_learning_rate_by_3_and_the_segments_by_2() -> None:
-    cfg = compose(["train.lr=0.009", "train.segment_samples=60"])
+def test_restarts_take_smaller_steps_then_drop_the_warm_start() -> None:
+    cfg = compose(["train.lr=0.009", "train.segment_samples=60", "train.warm_start=auto"])
     assert restart_changes(cfg, 1) == {"train.lr": pytest.approx(0.003), "train.segment_samples": 30}
-    assert restart_changes(cfg, 2) == {"train.lr": pytest.approx(0.001), "train.segment_samples": 15}
-    short = compose(["train.segment_samples=3"])
+    assert restart_changes(cfg, 2) == {"train.warm_start": "none"}  # another start, the trial's own steps
+    assert restart_changes(cfg, 3) == {"train.warm_start": "none", "train.lr": pytest.approx(0.003),
+                                       "train.segment_samples": 30}
+    cold = compose(["train.lr=0.009", "train.segment_samples=60", "train.warm_start=none"])  # only smaller steps
+    assert restart_changes(cold, 2) == {"train.lr": pytest.approx(0.001), "train.segment_samples": 15}
+    short = compose(["train.segment_samples=3", "train.warm_start=none"])
     assert restart_changes(short, 1)["train.segment_samples"] == 2  # never below two sampling intervals
     assert restart_changes(short, 2)["train.segment_samples"] == 2
     assert "train.segment_samples" not in restart_changes(compose(["train.segment_samples=2"]), 1)  # at the floor
-    seconds = compose(["train.segment_length=5"])  # a length given in the model's time unit: halved
+    seconds = compose(["train.segment_length=5", "train.warm_start=none"])  # a length in the model's time unit: halved
     assert restart_changes(seconds, 2)["train.segment_length"] == pytest.approx(1.25)
     assert describe({"train.lr": 0.0033333, "train.segment_samples": 30}) == "train.lr=0.003333 train.segment_samples=30"
+    assert describe({"train.warm_start": "none"}) == "train.warm_start=none"
     with pytest.raises(ValueError, match="restart must be >= 1, but got 0"):
         restart_changes(cfg, 0)
 
 
 def test_attempts_restart_after_divergence_until_none_is_left() -> None:
-    cfg = compose(["train.lr=0.009", "train.segment_samples=60"])
+    cfg = compose(["train.lr=0.009", "train.segment_samples=60", "train.warm_start=auto"])
     attempts = Attempts(cfg, limit=2)
     assert attempts.current is cfg and attempts.restarts == 0
     assert not attempts.restart_after(UDEConfigError("a wrong setting"))  # not a divergence: fails at once
@@ -50,12 +55,13 @@ def test_attempts_restart_after_divergence_until_none_is_left() -> None:
     assert attempts.current.train.lr == pytest.approx(0.003) and attempts.current.train.segment_samples == 30
     assert cfg.train.lr == 0.009  # the trial's own configuration is untouched
     assert attempts.restart_after(SimulationError("step size underflow"))
-    assert attempts.current.train.lr == pytest.approx(0.001) and attempts.current.train.segment_samples == 15
+    current = attempts.current
+    assert current.train.warm_start == "none" and current.train.lr == 0.009 and current.train.segment_samples == 60
     last = TrainingDiverged("still diverged")
     assert not attempts.restart_after(last)  # two restarts were all it had
     final = attempts.final(last)
     assert isinstance(final, TrainingDiverged) and final.__cause__ is last
-    assert str(final) == ("still diverged (in restart 2 of 2, with train.lr=0.001 train.segment_samples=15; the first "
+    assert str(final) == ("still diverged (in restart 2 of 2, with train.warm_start=none; the first "
                           "attempt: TrainingDiverged: whole-trajectory simulation failed)")
     assert Attempts(cfg, limit=0).final(last) is last
     assert one_line("a\n  b", limit=3) == "a b" and one_line("abcdef", limit=4) == "abc…"
@@ -92,8 +98,8 @@ def test_the_divergence_line_counts_restarted_and_failed_trials() -> None:
         else:
             study.tell(trial, state=optuna.trial.TrialState.FAIL)
     line = divergence(study.get_trials(), 2)
-    assert line.startswith("divergence: 2 of 4 trials diverged and were restarted (up to 2× with a smaller learning "
-                           "rate and shorter segments): 1 then trained to the end or were pruned, 1 failed; 2 of 4 failed in all")
+    assert line.startswith("divergence: 2 of 4 trials diverged and were restarted (up to 2×: smaller steps, then no "
+                           "warm start): 1 then trained to the end or were pruned, 1 failed; 2 of 4 failed in all")
     assert divergence(study.get_trials()[:1], 2) == "divergence: no trial of 1 diverged"
 
 
@@ -142,8 +148,8 @@ def test_a_diverging_trial_is_restarted_and_ends_finished(user_project: Path, mo
     (line,) = [l for l in out.err.splitlines() if l.startswith("trial 0 diverged (")]
     assert line.startswith("trial 0 diverged (TrainingDiverged: whole-trajectory simulation of the hybrid failed")
     assert line.endswith("restart 1 of 2 with train.lr=1.111 train.segment_length=2.5")
-    assert ("divergence: 1 of 2 trials diverged and were restarted (up to 2× with a smaller learning rate and shorter "
-            "segments): 1 then trained to the end or were pruned, 0 failed; 0 of 2 failed in all") in out.out
+    assert ("divergence: 1 of 2 trials diverged and were restarted (up to 2×: smaller steps, then no warm start): "
+            "1 then trained to the end or were pruned, 0 failed; 0 of 2 failed in all") in out.out
     store = open_store(OmegaConf.create({"uri": f"sqlite:///{user_project / 'mlflow.db'}", "experiment": "physmend"}))
     run = store.client.get_run(study.trials[0].user_attrs["mlflow_run_id"])
     assert run.data.tags["physmend.restarts"] == "1" and run.data.tags["physmend.trial_state"] == "COMPLETE"

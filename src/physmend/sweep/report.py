@@ -123,8 +123,8 @@ def divergence(trials: Any, restarts: int) -> str:
     if not again:
         return (f"divergence: no trial of {len(counted)} diverged" if not failed
                 else f"divergence: no trial of {len(counted)} was restarted; {failed} failed (reasons above)")
-    return (f"divergence: {len(again)} of {len(counted)} trials diverged and were restarted (up to {restarts}× with "
-            f"a smaller learning rate and shorter segments): {len(again) - len(lost)} then trained to the end or were "
+    return (f"divergence: {len(again)} of {len(counted)} trials diverged and were restarted (up to {restarts}×: "
+            f"smaller steps, then no warm start): {len(again) - len(lost)} then trained to the end or were "
             f"pruned, {len(lost)} failed; {failed} of {len(counted)} failed in all")
 
 

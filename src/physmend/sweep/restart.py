@@ -2,19 +2,15 @@
 
 A trial's training may diverge for reasons that say little about its architecture: a learning
 rate that overshoots on this problem, shooting segments long enough for the hybrid to leave the
-data's range. Such a trial is trained again (``sweep.restarts`` times at most), each time with
-
-* the learning rate divided by :data:`LR_DIVISOR` (``train.lr``), and
-* shooting segments half as long (``train.segment_samples`` where ``train.segment_length`` is
-  ``auto``, else ``train.segment_length``), never shorter than :data:`MIN_SEGMENT_SAMPLES`
-  sampling intervals,
-
-both relative to the trial's own settings (restart ``k``: ``lr / 3**k``, segments ``/ 2**k``). Its
-Optuna parameters stay what the sampler proposed; its child run records what it was trained with
-(tags ``physmend.restarts``, ``physmend.restart.reasons``, ``physmend.restart.overrides``, and the
-``config.yaml`` artifact, which later stages load). Only divergence restarts a trial
-(:func:`diverged`); a wrong setting or a pruning signal does not. Imports nothing of physmend's
-sweep modules.
+data's range, a warm start whose network fits the rates but drives the free simulation away. Such
+a trial is trained again (``sweep.restarts`` times at most) with the settings of
+:func:`restart_changes`, relative to the trial's own: first smaller steps (``train.lr`` ÷
+:data:`LR_DIVISOR`, shooting segments ÷ :data:`SEGMENT_DIVISOR`), then another start (no warm
+start). Its Optuna parameters stay what the sampler proposed; its child run records what it was
+trained with (tags ``physmend.restarts``, ``physmend.restart.reasons``,
+``physmend.restart.overrides``, and the ``config.yaml`` artifact, which later stages load). Only
+divergence restarts a trial (:func:`diverged`); a wrong setting or a pruning signal does not.
+Imports nothing of physmend's sweep modules.
 """
 
 from __future__ import annotations
@@ -61,22 +57,36 @@ def one_line(exc: BaseException | str, limit: int = 400) -> str:
 
 def restart_changes(cfg: DictConfig, restart: int) -> dict[str, Any]:
     """The settings of restart number ``restart`` (1, 2, …) of a trial configured by ``cfg``, as
-    ``{dotted key: value}``: the learning rate ÷ ``3**restart``, the shooting segments ÷ ``2**restart``
-    (in sampling intervals where ``train.segment_length`` is ``auto``, else in the segment length's
-    own unit), not below :data:`MIN_SEGMENT_SAMPLES` intervals (a segment length given as a number is
-    halved without a floor: its sampling interval is not known here)."""
+    ``{dotted key: value}``.
+
+    Two remedies, in this order: smaller steps — the learning rate ÷ 3 and the shooting segments ÷ 2
+    (in sampling intervals where ``train.segment_length`` is ``auto``, else in the segment length's own
+    unit), not below :data:`MIN_SEGMENT_SAMPLES` intervals (a length given as a number is halved without
+    a floor: its sampling interval is not known here) — then another start: no warm start, the
+    trial's own steps (a derivative-matching warm start can give a network that fits the rates yet
+    drives the free simulation off its data; every later checkpoint then fails however small the
+    steps). Restart 1 takes smaller steps; restart 2 drops the warm start; each further restart takes
+    smaller steps again (÷ 3 and ÷ 2 once more). A trial trained without a warm start only takes
+    smaller steps (restart ``k``: ``lr / 3**k``, segments ``/ 2**k``)."""
     if restart < 1:
         raise ValueError(f"restart must be >= 1, but got {restart}")
     tc = cfg.train
-    changes: dict[str, Any] = {"train.lr": float(tc.lr) / LR_DIVISOR ** restart}
+    changes: dict[str, Any] = {}
+    shrink = restart
+    if str(tc.get("warm_start", "none")) != "none" and restart >= 2:
+        changes["train.warm_start"] = "none"
+        shrink = restart - 2
+    if shrink == 0:
+        return changes
+    changes["train.lr"] = float(tc.lr) / LR_DIVISOR ** shrink
     length = tc.get("segment_length", "auto")
     if str(length) == "auto":
         samples = int(tc.get("segment_samples", 60))
-        shorter = max(MIN_SEGMENT_SAMPLES, samples // SEGMENT_DIVISOR ** restart)
+        shorter = max(MIN_SEGMENT_SAMPLES, samples // SEGMENT_DIVISOR ** shrink)
         if shorter < samples:
             changes["train.segment_samples"] = shorter
     else:
-        changes["train.segment_length"] = float(length) / SEGMENT_DIVISOR ** restart
+        changes["train.segment_length"] = float(length) / SEGMENT_DIVISOR ** shrink
     return changes
 
 
@@ -90,7 +100,7 @@ def restarted_config(cfg: DictConfig, changes: dict[str, Any]) -> DictConfig:
 
 def describe(changes: dict[str, Any]) -> str:
     """``changes`` as Hydra overrides, e.g. ``train.lr=0.00333 train.segment_samples=30``."""
-    return " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items())
+    return " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in changes.items()) or "the same settings"
 
 
 @dataclass

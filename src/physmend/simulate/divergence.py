@@ -12,8 +12,10 @@ Jacobian taken there, makes no sense. This module states the rule and gives the 
   the margin by which training holds its states around their range
   (:data:`physmend.ude.shooting.BOX_MARGIN`, the same number): a simulation that goes further
   is outside what any correction trained on these records can reach;
-* a simulation **diverges** where an output leaves its box or is not finite (first such row per
-  experiment and output: :func:`first_exits`);
+* a simulation **diverges** where an output is not finite, or leaves its box (first such row per
+  experiment and output: :func:`first_exits`) and is still leaving it when the record ends (its
+  farthest excursion is its last value; :func:`physmend.ude.reference.find_divergence`) — one
+  that went out and came back, or turned, is a model that misses, not one that diverges;
 * a **projected** right-hand side (:func:`projected`) keeps states inside a box by zeroing the
   rates that point out of it: a model that blows up in finite time can still be simulated, up to
   the time it reaches the box, exactly as written.

@@ -111,6 +111,11 @@ def _interval(t: np.ndarray) -> float:
     return float(np.median(gaps)) if gaps.size else 0.0
 
 
+def _ratio(x: float) -> str:
+    """A ratio to the noise: one decimal, or three significant digits from 1e5 (a diverging model's 3.5e+26)."""
+    return f"{x:.1f}" if not abs(x) >= 1e5 else f"{x:.3g}"
+
+
 def _fmt(x: float, unit: str = "") -> str:
     return f"{x:.3g}{(' ' + unit) if unit else ''}"
 
@@ -137,7 +142,7 @@ def summarise(problem: Problem, analysis: dict[str, Any], cfg: Any) -> str:
         u = f["unit"]
         lines.append(
             f"| {f['experiment']} | {f['role']} | {f['output']} | {_fmt(f['rmse'], u)} | {_fmt(f['bias'], u)} | "
-            f"{_fmt(f['max_abs'], u)} | {_fmt(f['noise'], u)} | {f['ratio_to_noise']:.1f} |"
+            f"{_fmt(f['max_abs'], u)} | {_fmt(f['noise'], u)} | {_ratio(f['ratio_to_noise'])} |"
         )
     worst = max(analysis["fits"], key=lambda f: f["ratio_to_noise"] if np.isfinite(f["ratio_to_noise"]) else -1)
     lines += ["", "## Verdict", ""]
@@ -146,7 +151,7 @@ def summarise(problem: Problem, analysis: dict[str, Any], cfg: Any) -> str:
         lines += divergence_lines(problem, diverged)
     if worst["ratio_to_noise"] > 3:
         lines.append(
-            f"The model misses the recordings: the error reaches {worst['ratio_to_noise']:.1f}× the estimated "
+            f"The model misses the recordings: the error reaches {_ratio(worst['ratio_to_noise'])}× the estimated "
             f"sensor noise ({worst['output']}, experiment {worst['experiment']}). Something is missing or mis-sized."
         )
     else:

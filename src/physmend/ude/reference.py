@@ -151,9 +151,11 @@ def state_boxes(problem: Problem, batch: Batch, box_lo: torch.Tensor, box_hi: to
 
 
 def find_divergence(problem: Problem, batch: Batch, outputs: torch.Tensor, blows_up: bool = False) -> list[Divergence]:
-    """Every experiment's outputs ``(T, B, k)`` that leave their box within its own record, one
-    :class:`Divergence` per experiment and output, earliest first. ``blows_up``: the outputs come
-    from a solve held in the box because the plain one failed — reaching the box's edge counts."""
+    """Every experiment's outputs ``(T, B, k)`` that diverge within its own record, one
+    :class:`Divergence` per experiment and output, earliest first: an output that is not finite,
+    or leaves its box and is still leaving it at the record's end (:func:`_still_leaving`).
+    ``blows_up``: the outputs come from a solve held in the box because the plain one failed —
+    reaching the box's edge counts."""
     from physmend.ude.measured import measured_outputs
 
     lo, hi, box_lo, box_hi = output_boxes(problem, batch)
@@ -170,13 +172,25 @@ def find_divergence(problem: Problem, batch: Batch, outputs: torch.Tensor, blows
         row = int(first[b, j])
         rows = valid[:, b]
         y = outputs[rows, b, j]
-        peak = math.inf if blows_up or not bool(torch.isfinite(y).all()) else float(y.abs().max())
+        finite = bool(torch.isfinite(y).all())
+        if finite and not blows_up and not _still_leaving(y, box_lo[j], box_hi[j]):
+            continue  # out and back (or turned): a model that misses, not one that diverges
+        peak = math.inf if blows_up or not finite else float(y.abs().max())
         e = problem.experiments[b]
         found.append(Divergence(experiment=str(e.id), role=e.role, name=measures.get(j, names[j]), output=names[j],
                                 time=float(batch.t[row]), blows_up=blows_up, low=float(lo[j]), high=float(hi[j]),
                                 box_low=float(box_lo[j]), box_high=float(box_hi[j]), value=float(outputs[row, b, j]),
                                 peak=peak, end=float(ends[b])))
     return sorted(found, key=lambda d: (d.time, d.experiment, d.output))
+
+
+def _still_leaving(y: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor) -> bool:
+    """True where ``y (T,)`` (one experiment's output within its record) ends outside its box at
+    its farthest excursion: it left the records' range and is still leaving it when the record
+    ends. A simulation that went out and came back, or turned, misses the records but has not
+    diverged (a model as written that is wrong but bounded keeps its reference)."""
+    beyond = torch.maximum(box_lo - y, y - box_hi).clamp_min(0.0)
+    return bool(beyond[-1] > 0) and bool(beyond[-1] >= beyond.max())
 
 
 def bounded_states(problem: Problem, batch: Batch, solve: Callable[[Batch], torch.Tensor],

@@ -127,7 +127,8 @@ def rk4_segments(rhs: Callable[[torch.Tensor, Any], torch.Tensor], u0: torch.Ten
 
 
 #: the training solve holds each state within this many training ranges beyond its training range
-#: (:meth:`~physmend.ude.hybrid.HybridSpec.box`)
+#: (:meth:`~physmend.ude.hybrid.HybridSpec.box`); a model as written that goes farther beyond the
+#: records' range diverges (:data:`physmend.simulate.divergence.RANGE_MARGIN`, the same number)
 BOX_MARGIN = 3.0
 
 

@@ -159,3 +159,11 @@ def test_a_diverging_trial_is_restarted_and_ends_finished(user_project: Path, mo
     assert stored.train.lr == pytest.approx(3.3333 / 3) and stored.train.segment_length == pytest.approx(2.5)
     steps = [m.step for m in store.client.get_metric_history(run.info.run_id, "val.rmse")]
     assert steps == sorted(steps) and len(steps) == len(set(steps))  # one timeline: the restart after the first
+
+
+def test_a_mask_candidate_without_a_validation_rmse_says_why_in_its_line() -> None:
+    from physmend.stages.mask import _val_text
+
+    reason = TrainingDiverged("whole-trajectory simulation of the hybrid failed:\n the hybrid diverged in 'h2'")
+    assert _val_text(reason) == ("nan (TrainingDiverged: whole-trajectory simulation of the hybrid failed: the hybrid "
+                                 "diverged in 'h2')")

@@ -27,7 +27,8 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     """Run the whole pipeline; returns the proposal's run ID.
 
     ``overrides``/``config_dir``: what ``cfg`` was composed from (the CLI passes them). The user's
-    settings win: a ``sweep.*`` key on the command line is kept (``discover.*`` fills the rest), and
+    settings win: a ``sweep.*`` key on the command line is kept (``discover.*`` fills the rest; a
+    ``sweep.n_trials`` given without ``sweep.budget`` is the number of trials, not a minimum), and
     a key the search space would search is left out of the search, said in one line.
     """
     from physmend.config import ConfigError
@@ -44,6 +45,8 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
               "group": int(cfg.discover.get("group", 1)), "group_shapes": shapes,
               "budget": None if budget is None else float(budget),
               "max_trials": cfg.discover.get("max_trials")}
+    if "sweep.n_trials" in given and "sweep.budget" not in given:
+        chosen["budget"] = None  # the user's count of trials is the count, not a minimum under discover's budget
     for key in SWEEP_KEYS:
         if f"sweep.{key}" not in given:
             cfg.sweep[key] = chosen[key]

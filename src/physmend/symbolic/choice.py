@@ -154,7 +154,7 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     n = max(2.0, span / window) if n_obs is None else max(2.0, float(n_obs))
     # the model as written, simulated once: the segments' plan, initial guesses and scales (a
     # candidate's own parameters — its constants — come with its own batch)
-    base = reference(checkpoint_problem(problem), work)
+    base = reference(checkpoint_problem(problem), work, bounded=True)
     shared: list[Any] = []  # the screening's segment-start guesses: the model as written's, made once
 
     def loss_of(i: int, steps: int, screening: bool = False) -> float:

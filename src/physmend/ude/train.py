@@ -67,7 +67,7 @@ def _train(cfg: Any, problem: Problem, report: Callable[[int, dict[str, float]],
     from physmend.ude.timescale import check_budget, resolve_times
 
     torch.manual_seed(int(cfg.get("seed", 0)))
-    ref = reference(problem, cfg)
+    ref = reference(problem, cfg, bounded=True)
     cfg = resolve_times(cfg, problem, ref)  # 'auto' time settings from the data and the model
     tc = cfg.train
     spec = build_spec(cfg, problem, ref)

@@ -16,7 +16,9 @@ what the tool *did* — not what its report says — against the example's truth
 * **held-out RMSE** per measured output of the test experiments, simulated here from the model as
   written and the model plus the corrections the tool proposes (``corrections.yaml`` of the
   proposal), and the masked network's (the mask run's whole-trajectory metric); each against the
-  example's stated sensor noise σ. An output passes when it improves ≥ 5× or ends ≤ 1.5 σ;
+  example's stated sensor noise σ. An output passes when it improves ≥ 5× or ends ≤ 1.5 σ; the
+  improvement counts from the better of the model as written and the records' own mean (where the
+  model as written diverges, being better than it says nothing);
 * **mechanism**: whether the proposal's report names one of the truth's ``mechanism`` keywords;
 * **stray terms** (issue 32): every formula the proposal puts on an equation that is *not* in the
   truth's ``corrections``, evaluated along the same trajectories as the formula R², its RMS over
@@ -106,6 +108,9 @@ class Score:
     truth_constants: dict[str, float] = field(default_factory=dict)  # free constants of the truth, as fitted
     r2_trajectory: str = "truth"  # along which trajectories R² and stray ratios were evaluated
     published: dict[str, Any] = field(default_factory=dict)  # the truth's published figure and ours beside it
+    # the records' RMS deviation from their mean per "<id>/<output>": the constant prediction. Where the model as
+    # written diverges, "5x better than it" says nothing; the improvement counts from the better of the two
+    rmse_mean: dict[str, float] = field(default_factory=dict)
 
     def _published_pass(self, which: str) -> bool:
         fig, ours = self.published.get("rmse", math.nan), self.published.get(which, math.nan)
@@ -119,6 +124,7 @@ class Score:
         for key, before in self.rmse_before.items():
             out = key.split("/", 1)[1]
             a = after[key]
+            before = min(before, self.rmse_mean.get(key, math.inf))
             if not math.isfinite(a) or not (before / a >= IMPROVEMENT or a <= NEAR_NOISE * self.noise.get(out, 0.0)):
                 return False
         return True
@@ -243,6 +249,18 @@ def _rmse_of(problem: Any, test: list[Any], batch: Any, traj: Any, skip: int = 0
             err = (traj.outputs[:, b, j] - batch.obs[:, b, j]).numpy()
             err = err[np.isfinite(err)][skip:]
             out[f"{e.id}/{name}"] = float(np.sqrt(np.mean(err**2))) if err.size else float("nan")
+    return out
+
+
+def _spread_of(problem: Any, test: list[Any], batch: Any, traj: Any, skip: int = 0) -> dict[str, float]:
+    """The RMS deviation of each test record from its own mean (``"<id>/<output>"``): the error of the
+    constant prediction, the baseline where the model as written diverges."""
+    out: dict[str, float] = {}
+    for b, e in enumerate(test):
+        for j, name in enumerate(problem.model.output_names):
+            y = batch.obs[:, b, j].numpy()
+            y = y[np.isfinite(y)][skip:]
+            out[f"{e.id}/{name}"] = float(np.sqrt(np.mean((y - y.mean()) ** 2))) if y.size else float("nan")
     return out
 
 
@@ -385,6 +403,7 @@ def score(example: Path, folder: Path, score_: Score) -> Score:
             score_.error = (score_.error + f"; stray formula of {state} not evaluated: {exc!r}")[:400]
         score_.stray[state] = stray_rms / concealed_rms if concealed_rms > 0 else math.inf
     score_.rmse_before = _rmse_of(*sim("before"))
+    score_.rmse_mean = _spread_of(*sim("before"))
     score_.rmse_formula = _rmse_of(*sim("after"))
     metrics = mask.data.metrics
     score_.rmse_network = {k: float(metrics.get(f"rmse.{k.replace('/', '.', 1)}", float("nan"))) for k in score_.rmse_before}

@@ -12,7 +12,7 @@ from physmend.symbolic import SymbolicError
 from physmend.explain.mechanisms import MechanismError
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.io import ArtifactError
-from physmend.sweep.loop import NoTrialCompleted
+from physmend.sweep.run import NoTrialCompleted
 
 USER_ERRORS: tuple[type[Exception], ...] = (
     ArtifactError, ConfigError, DataError, MechanismError, ModelError, NoTrialCompleted, SimulationError,

@@ -9,7 +9,7 @@ import sympy
 
 from physmend.explain.mechanisms import classify, load_catalogue
 from physmend.symbolic.choice import catalogue_candidates
-from physmend.symbolic.interval import interval_violation
+from physmend.modeling.interval import interval_violation
 
 T1, T2, FLOW = "zone1.air.T", "zone2.air.T", "fan.flow"
 A, B, U = (sympy.Symbol(n) for n in (T1, T2, FLOW))

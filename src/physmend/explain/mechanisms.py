@@ -10,7 +10,7 @@ matches.
 
 A form is never used with a quantity on an interval scale (a unit with an offset: ``degC``,
 ``degF``, a unit the model declares affine) other than linearly or as a difference
-(:mod:`physmend.symbolic.interval`): ``c·√|u|`` (Torricelli) or ``c·sign(u)`` of a temperature in
+(:mod:`physmend.modeling.interval`): ``c·√|u|`` (Torricelli) or ``c·sign(u)`` of a temperature in
 °C is not admissible, ``c·(a − b)·√|a − b|`` of two is. A threshold form's constant ``k`` (a
 quantile of its variable) lies on the variable's own scale and moves with its zero, so
 ``c·Max(u − k, 0)`` stays admissible; a scale or an exponent does not move, so ``u/(k + u)`` and
@@ -157,9 +157,9 @@ class MechanismMatch:
 
 @lru_cache(maxsize=1024)
 def _shape_reason(shape: sympy.Expr, scales: tuple[tuple[str, str], ...]) -> str | None:
-    """:func:`physmend.symbolic.interval.shift_violation` of a template's shape with the placeholders
+    """:func:`physmend.modeling.interval.shift_violation` of a template's shape with the placeholders
     ``scales`` (name -> affine unit) shifting; the verdict depends on the form only, so it is kept."""
-    from physmend.symbolic.interval import shift_violation
+    from physmend.modeling.interval import shift_violation
 
     return shift_violation(shape, {sympy.Symbol(p): unit for p, unit in scales})
 

@@ -21,7 +21,7 @@ built in; a model may declare more (:func:`declare_affine`, through
 :meth:`physmend.modeling.Model.affine_unit`), each with its ``offset`` — how far its zero lies
 above the absolute zero, in its own steps (273.15 for degC). A quantity in such a unit has a zero
 that is a convention, so it may enter a nonlinear operation only as a difference
-(:mod:`physmend.symbolic.interval` checks formulas). :func:`is_affine` and :func:`affine_offset`
+(:mod:`physmend.modeling.interval` checks formulas). :func:`is_affine` and :func:`affine_offset`
 answer for one unit string: the whole string must be the unit (``degC/s``, a rate, is a ratio
 scale). This module is extended rather than replaced by ``pint``: pint knows affine units, but it
 is not installed here, its registry would not read the Modelica notation models are written in

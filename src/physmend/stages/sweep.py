@@ -11,7 +11,8 @@ from omegaconf import DictConfig
 
 from physmend.config import ConfigError
 from physmend.sweep.configs import TrialConfigs, _override_key, check_keys, check_overrides, probe_space
-from physmend.sweep.loop import Sweep, _drive, _trainer
+from physmend.sweep.loop import Sweep
+from physmend.sweep.run import _drive, _trainer
 from physmend.sweep.parent import _create_parent, _parent_run, _parent_tags
 from physmend.sweep.settings import Settings
 from physmend.sweep.space import load_space

@@ -255,7 +255,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.ude.analysis import training_trajectories
     from physmend.ude.timescale import resolve_times
     from physmend.ude.metrics import checkpoint_problem
-    from physmend.symbolic.choice import MIN_RECORDED_WINDOWS, independent_windows, training_samples
+    from physmend.symbolic.choice import MIN_RECORDED_WINDOWS, independent_windows
     from physmend.symbolic import ParetoFront
     from physmend.symbolic.library import pair_candidates
     from physmend.symbolic.scaled import scaled_variants
@@ -365,7 +365,6 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                                 units, sc, {}) for s in kept]
         i, why = choose_by_simulation(
             work, problem, state, sub, build_all, min(int(sc.refit_epochs), SELECTION_REFIT_STEPS),
-            n_obs=training_samples(problem),
             reason=(f"the training records give only {windows:.0f} independent windows of recorded mismatch, fewer "
                     f"than {MIN_RECORDED_WINDOWS}: the {len(shortlist)} formulas they rank best are put into the model "
                     "and every training sample decides"))

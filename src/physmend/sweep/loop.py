@@ -1,17 +1,15 @@
 """The study loop: ask a trial (or a group), compose, train (alone or as one stack), log the child
-run, tell Optuna; prune, stop on failures, mark stale trials. Imports every module above.
+run, tell Optuna; prune, stop on failures, mark stale trials (:mod:`physmend.sweep.run` drives it).
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-import signal
-import subprocess
 import sys
 import time
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -20,13 +18,12 @@ from omegaconf import DictConfig, OmegaConf
 from physmend.redact import redact
 from physmend.config import ConfigError
 from physmend.sweep.configs import TrialConfigs
-from physmend.sweep.parent import _finish_parent
-from physmend.sweep.report import Reporter, _log_result, _say, _show, summary
+from physmend.sweep.report import Reporter, _log_result, _say, _show
 from physmend.sweep.restart import RESTARTS_ATTR, one_line
 from physmend.sweep.settings import Settings, shape_keys
 from physmend.sweep.space import SearchSpace
 from physmend.sweep.storage import REASON_ATTR, RUN_ID_ATTR, Tally, WORKER_ATTR, _uncounted, tally
-from physmend.sweep.workers import Heartbeat, _join_workers, _worker, is_stale
+from physmend.sweep.workers import Heartbeat, _worker, is_stale
 
 if TYPE_CHECKING:
     import optuna
@@ -469,59 +466,3 @@ class Sweep:
                 self.store.client.set_terminated(run_id, "KILLED")
         except Exception:  # noqa: BLE001 - the run may be gone; the study is the record
             pass
-
-
-
-class NoTrialCompleted(RuntimeError):
-    """A sweep ended without one trial that finished training: nothing is selected (exit status 2)."""
-
-
-def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
-    """Run this worker's loop, then wait for the ``helpers`` (worker processes) before the summary."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=sweep.n_trials, desc=f"sweep {sweep.study.study_name}", unit="trial",
-               file=sys.stderr, disable=not sweep.settings.progress, dynamic_ncols=True)
-    status = "FINISHED"
-    try:
-        sweep.loop(bar)
-        _join_workers(list(helpers))
-    except KeyboardInterrupt:
-        status = "KILLED"
-        _say(bar, "interrupted: the running trial is recorded FAIL (interrupted); rerun the same command to resume")
-        for proc in helpers:  # a Ctrl-C reaches them too: they record their own running trials
-            try:
-                proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:  # only this process was interrupted: pass it on
-                proc.send_signal(signal.SIGINT)
-                proc.wait()
-        raise
-    except BaseException as exc:
-        status = "FAILED"
-        for proc in helpers:  # their running trials are marked FAIL (interrupted) once their heartbeats go stale
-            proc.terminate()
-        from physmend.tracking import ERROR_TAG
-
-        sweep.store.client.set_tag(sweep.parent_run_id, ERROR_TAG, redact(f"{type(exc).__name__}: {exc}")[:5000])
-        raise
-    finally:
-        bar.close()
-        if status == "FINISHED":
-            counts = _finish_parent(sweep, status)
-            print(summary(sweep, counts))
-        else:
-            try:
-                _finish_parent(sweep, status)
-            except Exception as exc:  # noqa: BLE001 - never mask the error that ended the sweep
-                sys.stderr.write(f"could not record the end of sweep run {sweep.parent_run_id}: {exc}\n")
-    if counts.best_value is None and not counts.running:  # the command did not do its job: say so, non-zero
-        raise NoTrialCompleted(f"sweep {sweep.study.study_name!r}: none of its {counts.counted} trials finished "
-                               f"training ({counts.failed} failed, {counts.pruned} pruned); `physmend runs` lists why")
-    return sweep.parent_run_id
-
-
-
-def _trainer() -> Callable[..., Any]:
-    from physmend.ude import train
-
-    return train

@@ -14,7 +14,7 @@ from physmend.symbolic._errors import BackendUnavailable, SymbolicError
 from physmend.modeling.evaluate import display, evaluate, mse_r2
 from physmend.modeling.units import mismatch
 from physmend.symbolic._front import Candidate, ParetoFront, pareto_filter
-from physmend.symbolic.interval import interval_violation
+from physmend.modeling.interval import interval_violation
 
 #: back end name -> module implementing it (imported lazily; the modules import nothing heavy at import time).
 BACKENDS: dict[str, str] = {
@@ -136,7 +136,7 @@ def fit(
             unit, an unknown unit is never a reason). ``info["unit_rejected"]`` counts them. It also
             drops every formula that uses a quantity on an interval scale (a unit with an offset:
             ``degC``, ``degF``, a unit the model declares affine) other than linearly or as a
-            difference (``sign(T)``, ``√|T|``, ``T1·T2``; :mod:`physmend.symbolic.interval`):
+            difference (``sign(T)``, ``√|T|``, ``T1·T2``; :mod:`physmend.modeling.interval`):
             ``info["interval_rejected"]`` counts them.
 
     Returns:

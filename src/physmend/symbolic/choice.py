@@ -120,8 +120,7 @@ def _bar(items: Any, desc: str) -> Any:
 
 
 def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build: Any,
-                         refit_steps: int = 0, *, n_obs: float | None = None,
-                         reason: str | None = None) -> tuple[int, str]:
+                         refit_steps: int = 0, *, reason: str | None = None) -> tuple[int, str]:
     """The formula for ``state`` whose corrected *model* best reproduces the training records.
 
     Where a kept equation's state is not measured, no recorded mismatch exists for it and the
@@ -134,9 +133,8 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     sized wrong by the regression would otherwise lose to a wrong one; :mod:`physmend.symbolic.refit`).
     ``BIC = n·ln(L) + k·ln(n)`` with ``L`` the re-fitted multiple-shooting loss (the mean squared
     normalised output error plus the continuity penalty), ``k`` the formula's constants and ``n``
-    the independent windows (``symbolic.window`` long) of the training records — or ``n_obs``, the
-    training samples, where the caller knows the records are too short for windows to count
-    (:func:`training_samples`). A candidate whose segments cannot be solved is out. Validation and
+    the independent windows (``symbolic.window`` long) of the training records (the residuals of a
+    misfit are correlated over a window: the samples are not independent). A candidate whose segments cannot be solved is out. Validation and
     test records decide nothing here. ``reason`` says why the simulation decides (default: the state
     is not measured).
     """
@@ -151,7 +149,7 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     window = max(float(work.symbolic.window), 1e-300)
     span = sum(float(e.split_time if e.split_time is not None else e.obs_time[-1]) - float(e.obs_time[0])
                for e in problem.experiments if e.role == "train")
-    n = max(2.0, span / window) if n_obs is None else max(2.0, float(n_obs))
+    n = max(2.0, span / window)
     # the model as written, simulated once: the segments' plan, initial guesses and scales (a
     # candidate's own parameters — its constants — come with its own batch)
     base = reference(checkpoint_problem(problem), work, bounded=True)
@@ -195,7 +193,7 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     screened = (f"; screened first with {SCREEN_STEPS} steps each, the best {SCREEN_KEEP} re-fitted in full"
                 if count > SCREEN_KEEP and refit_steps > SCREEN_STEPS else "")
     reason = reason or f"{state} is not measured, so no recorded mismatch exists for it"
-    unit_n = f"{n:.0f} training samples" if n_obs is not None else f"{n:.0f} independent windows of {window:.4g}"
+    unit_n = f"{n:.0f} independent windows of {window:.4g}"
     why = (f"Rule 'simulated' ({reason}): each formula put "
            f"into the model, its constants re-fitted through the simulator (multiple shooting over the training "
            f"records, at most {refit_steps} steps{screened}); the lowest BIC = n·ln(L) + k·ln(n) of that loss ({unit_n}); chose index {pick} ({n_constants(c.expr)} constant(s), "
@@ -214,15 +212,3 @@ MIN_RECORDED_WINDOWS = 20
 def independent_windows(rates: Any) -> float:
     """The independent windows of the recorded mismatch (its sliding windows overlap: one per window)."""
     return float(rates.valid.sum()) / max(int(rates.window), 1)
-
-
-def training_samples(problem: Any) -> int:
-    """Measured values (output × time, NaN left out) of the training experiments before any carved
-    validation slice: the ``n`` of a choice by simulation over every training sample."""
-    total = 0
-    for e in problem.experiments:
-        if e.role != "train":
-            continue
-        rows = e.obs_time < e.split_time if e.split_time is not None else np.ones(e.obs_time.shape, dtype=bool)
-        total += int(np.isfinite(e.obs[rows]).sum())
-    return total

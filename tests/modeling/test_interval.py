@@ -10,7 +10,7 @@ import pytest
 import sympy as sp
 
 from physmend.symbolic import fit
-from physmend.symbolic.interval import MAX_NODES, interval_violation, shift_violation
+from physmend.modeling.interval import MAX_NODES, interval_violation, shift_violation
 
 T1, T2, TF, u, K1 = sp.symbols("zone1.air.T zone2.air.T plant.TF fan.flow wall.T")
 UNITS = {"zone1.air.T": "degC", "zone2.air.T": "degC", "plant.TF": "degF", "fan.flow": "m3/s", "wall.T": "K"}
@@ -84,7 +84,7 @@ def test_the_check_is_fast_and_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
     verdicts = [interval_violation(e, UNITS) for e in exprs]
     assert all(v is not None and "the base" in v for v in verdicts)
     assert time.perf_counter() - start < 5.0  # milliseconds each (2 busy cores: generous)
-    from physmend.symbolic import interval
+    from physmend.modeling import interval
 
     monkeypatch.setattr(interval, "MAX_NODES", 40)  # a formula larger than the bound is refused unread
     huge = sp.Add(*[sp.Float(k + 1.5) * sp.Abs(T1 - T2) ** k for k in range(2, 12)])

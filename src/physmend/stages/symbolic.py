@@ -214,6 +214,8 @@ def _correction(problem: Any, state: str, front: Any, idx: int, why: str, column
 #: a short record's choice by simulation re-fits at most this many formulas: those the recorded
 #: mismatch ranks best (a weak ranking on few windows, but one that costs nothing)
 SHORTLIST = 16
+#: ... joined by this many of the library's products and ratios of two variables (best fit of the target first)
+LIBRARY_SHORTLIST = 6
 
 
 def recorded_shortlist(front: Any, scores: list[tuple[float, float]], windows: float,
@@ -349,14 +351,20 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     fronts = {s: f for s, f in fronts.items() if s not in dropped}
     windows = independent_windows(rates) if rates is not None else math.inf
     short = [s for s in kept if s in recorded_scores and windows < MIN_RECORDED_WINDOWS]
+    library_sizes: dict[str, int] = {}
     for state in short:  # products and ratios of two variables join (appended: the other picks' indices hold)
         names_lib = [n for n in x_names if n not in problem.model.parameter_names]
         lib = pair_candidates(names_lib, columns, y_all[state], operators=operators)
         fronts[state].candidates = fronts[state].candidates + lib
+        library_sizes[state] = len(lib)
         recorded_scores[state] = recorded_scores[state] + [(a, r2) for a, _, r2 in (rates.score(c.expr, state) for c in lib)]
     for state in short:  # a short record: the recorded mismatch is a handful of window means; every sample decides
         front = fronts[state]
         shortlist = recorded_shortlist(front, recorded_scores[state], windows)
+        # the library's products and ratios are judged by the simulation whatever a few window means say
+        first_lib = len(front.candidates) - library_sizes[state]
+        shortlist += [i for i in range(first_lib, first_lib + min(LIBRARY_SHORTLIST, library_sizes[state]))
+                      if i not in shortlist]
         sub = ParetoFront(backend=front.backend, target=state, inputs=front.inputs,
                           candidates=[front.candidates[i] for i in shortlist])
 
@@ -366,8 +374,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         i, why = choose_by_simulation(
             work, problem, state, sub, build_all, min(int(sc.refit_epochs), SELECTION_REFIT_STEPS),
             reason=(f"the training records give only {windows:.0f} independent windows of recorded mismatch, fewer "
-                    f"than {MIN_RECORDED_WINDOWS}: the {len(shortlist)} formulas they rank best are put into the model "
-                    "and every training sample decides"))
+                    f"than {MIN_RECORDED_WINDOWS}: the formulas they rank best and the library's products and ratios, "
+                    f"{len(shortlist)} in all, are put into the model, whose simulation of every training sample "
+                    "decides"))
         picks[state] = (shortlist[i], why)
     fallback = ""
     while True:

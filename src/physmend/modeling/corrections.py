@@ -29,6 +29,7 @@ import sympy as sp
 import yaml
 
 from physmend.modeling.errors import ModelError
+from physmend.modeling.safe_parse import MAX_LENGTH, quoted
 from physmend.modeling.expressions import parse_expression
 from physmend.modeling.model import Equation, Model, der_name
 
@@ -97,7 +98,7 @@ def apply_corrections(
             consts[cname] = out.parameter(
                 pname, value, description=f"constant of the correction of {corr.state}", uncertain=estimate, bounds=bounds
             )
-        term = parse_expression(corr.term, {**by_name, **consts}, where=f"{label}: term {corr.term!r}")
+        term = parse_expression(corr.term, {**by_name, **consts}, where=f"{label}: term")
         if any(s.name.startswith("der(") or s.name == der_name(corr.state) for s in term.free_symbols):
             raise ModelError(f"{label}: a correction may not contain derivatives")
         out.equations[idx[0]] = Equation(eq.lhs, eq.rhs + term, owner=eq.owner, label=(eq.label or owner) + " + correction")
@@ -106,13 +107,12 @@ def apply_corrections(
 
 def read_corrections(path: str | Path) -> tuple[list[Correction], dict[str, Any]]:
     """Read a corrections file; returns the corrections and the file's other keys (model, run ID …)."""
+    from physmend.modeling.safe_yaml import load_bounded
+
     path = Path(path).expanduser()
     if not path.is_file():
         raise ModelError(f"model.corrections: file {str(path)!r} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ModelError(f"model.corrections: {path} is not valid YAML: {exc}") from None
+    data = load_bounded(path, ModelError, where=f"model.corrections: {path}")
     if not isinstance(data, Mapping) or data.get("physmend_corrections") != FORMAT:
         raise ModelError(f"model.corrections: {path} must be a physmend corrections file (physmend_corrections: {FORMAT})")
     items = data.get("corrections")
@@ -122,11 +122,28 @@ def read_corrections(path: str | Path) -> tuple[list[Correction], dict[str, Any]
     for k, item in enumerate(items):
         if not isinstance(item, Mapping) or "state" not in item or "term" not in item:
             raise ModelError(f"model.corrections: {path}: corrections[{k}] needs keys 'state' and 'term'")
+        for key in ("state", "term"):
+            if not isinstance(item[key], (str, int, float)) or isinstance(item[key], bool):
+                raise ModelError(f"model.corrections: {path}: corrections[{k}].{key} must be text, but is a "
+                                 f"{type(item[key]).__name__}")
+            if len(str(item[key])) > MAX_LENGTH:
+                raise ModelError(f"model.corrections: {path}: corrections[{k}].{key} may have at most {MAX_LENGTH} "
+                                 f"characters, but has {len(str(item[key]))}")
+        constants = item.get("constants") or {}
+        if not isinstance(constants, Mapping):
+            raise ModelError(f"model.corrections: {path}: corrections[{k}].constants must be a mapping name: number")
+        values: dict[str, float] = {}
+        for c, v in constants.items():
+            try:
+                values[str(c)[:200]] = float(v)
+            except (TypeError, ValueError):
+                raise ModelError(f"model.corrections: {path}: corrections[{k}].constants.{quoted(str(c), 40)} must be "
+                                 f"a number, but is {quoted(str(v), 40)}") from None
         out.append(
             Correction(
                 state=str(item["state"]),
                 term=str(item["term"]),
-                constants={str(c): float(v) for c, v in (item.get("constants") or {}).items()},
+                constants=values,
                 unit=str(item.get("unit", "")),
                 mechanism=str(item.get("mechanism", "")),
             )

@@ -35,6 +35,23 @@ MAX_LENGTH = 20_000  # characters
 MAX_NODES = 5_000
 MAX_EXPONENT = 64
 MAX_NUMBER = 1e300
+MAX_DEPTH = 200  # nesting of the syntax tree: far below Python's recursion limit
+QUOTE = 60  # characters of the offending text an error quotes
+
+
+def quoted(text: str, limit: int = QUOTE) -> str:
+    """``repr`` of ``text``, cut to about ``limit`` characters (an error never echoes a whole file)."""
+    return repr(text) if len(text) <= limit else repr(text[:limit]) + f"… ({len(text)} characters)"
+
+
+def _depth(tree: ast.AST) -> int:
+    """The nesting depth of ``tree``, found without recursion."""
+    deepest, stack = 0, [(tree, 1)]
+    while stack:
+        node, d = stack.pop()
+        deepest = max(deepest, d)
+        stack.extend((child, d + 1) for child in ast.iter_child_nodes(node))
+    return deepest
 
 FUNCTIONS: dict[str, object] = {
     "sqrt": sp.sqrt, "exp": sp.exp, "log": sp.log, "Abs": sp.Abs, "abs": sp.Abs, "sign": sp.sign,
@@ -76,12 +93,16 @@ def parse_safe(text: str, symbols: Mapping[str, sp.Symbol] | None = None, *, whe
     try:
         tree = ast.parse(plain.strip(), mode="eval")
     except SyntaxError as exc:
-        raise ModelError(f"{where}: {text!r} is not a valid formula ({exc.msg})") from None
+        raise ModelError(f"{where}: {quoted(text)} is not a valid formula ({exc.msg})") from None
+    except (RecursionError, MemoryError):
+        raise ModelError(f"{where}: {quoted(text)} is nested too deeply (at most {MAX_DEPTH} levels)") from None
     if sum(1 for _ in ast.walk(tree)) > MAX_NODES:
         raise ModelError(f"{where}: a formula may have at most {MAX_NODES} syntax nodes")
+    if _depth(tree) > MAX_DEPTH:
+        raise ModelError(f"{where}: {quoted(text)} is nested too deeply (at most {MAX_DEPTH} levels)")
 
     def refuse(what: str) -> ModelError:
-        return ModelError(f"{where}: {text!r} is not allowed in a formula: {what}")
+        return ModelError(f"{where}: {quoted(text)} is not allowed in a formula: {what}")
 
     def symbol(name: str) -> sp.Symbol:
         name = tokens.get(name, name)
@@ -101,9 +122,18 @@ def parse_safe(text: str, symbols: Mapping[str, sp.Symbol] | None = None, *, whe
         return sp.Integer(value) if isinstance(value, int) else sp.Float(value)
 
     def power(base: sp.Expr, exponent: sp.Expr) -> sp.Expr:
-        if exponent.is_number and (not exponent.is_finite or abs(float(sp.N(exponent))) > MAX_EXPONENT):
-            raise refuse(f"an exponent of size {sp.N(exponent, 4)} (at most {MAX_EXPONENT})")
-        if not exponent.is_number and base.is_number:
+        if exponent.is_number:
+            # a plain number only: evaluating a symbolic one (exp(exp(exp(100)))) would not end
+            if not isinstance(exponent, sp.Number) or not exponent.is_finite:
+                raise refuse("an exponent that is not a plain number or a formula of the variables")
+            if abs(float(exponent)) > MAX_EXPONENT:
+                raise refuse(f"an exponent of size {float(exponent):.4g} (at most {MAX_EXPONENT})")
+            if isinstance(base, sp.Number) and base != 0:
+                # the size of the result before it is built: 9**64 is fine, (9**64)**64 is not
+                size = abs(float(exponent)) * abs(math.log10(abs(float(base))) if abs(float(base)) != math.inf else math.inf)
+                if not size <= math.log10(MAX_NUMBER):
+                    raise refuse(f"a power of a number whose result exceeds {MAX_NUMBER:g} in size")
+        elif base.is_number:
             raise refuse("a number raised to a variable power")
         return sp.Pow(base, exponent)
 
@@ -173,4 +203,6 @@ def parse_safe(text: str, symbols: Mapping[str, sp.Symbol] | None = None, *, whe
     except ModelError:
         raise
     except (TypeError, ValueError, ZeroDivisionError, OverflowError) as exc:
-        raise ModelError(f"{where}: {text!r} is not a valid formula ({exc})") from None
+        raise ModelError(f"{where}: {quoted(text)} is not a valid formula ({str(exc)[:QUOTE]})") from None
+    except RecursionError:
+        raise ModelError(f"{where}: {quoted(text)} is nested too deeply (at most {MAX_DEPTH} levels)") from None

@@ -8,10 +8,13 @@ Nothing else is changed: not the user's model files, not earlier runs.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
 DECISION_TAG = "physmend.decision"
+#: a model name read from a store: a name, never a path (no separator, no leading dot)
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
 
 
 def _proposal(cfg: Any, run_id: str | None) -> tuple[Any, Any]:
@@ -32,14 +35,32 @@ def _proposal(cfg: Any, run_id: str | None) -> tuple[Any, Any]:
 def accept(cfg: Any, source_run_id: str | None = None) -> str:
     """Write the accepted corrections file and tag the proposal; returns the proposal's run ID."""
     from physmend.modeling import read_corrections, write_corrections
-    from physmend.tracking import download_artifact
+    from physmend.tracking import TrackingError, download_artifact
     from physmend.tracking.selection import os_user, utc_now
 
     store, run = _proposal(cfg, source_run_id)
     run_id = run.info.run_id
     corrections, meta = read_corrections(download_artifact(store, run_id, "corrections.yaml"))
     model_name = meta.get("model", "model")
-    target = Path(str(cfg.decide.output_dir)).expanduser() / f"{model_name}-{run_id[:8]}.yaml"
+    if not isinstance(model_name, str) or not _NAME.fullmatch(model_name):
+        from physmend.modeling.safe_parse import quoted
+
+        raise TrackingError(f"proposal {run_id!r}: its corrections.yaml names the model {quoted(str(model_name), 60)}, "
+                            "but a model name is letters, digits, '_', '-' and '.' (never a path); nothing written")
+    # parsed and applied to your own model exactly as `diagnose ++model.corrections=…` will: a term that
+    # cannot be read, or names what your model lacks, is refused before anything is written or tagged
+    from physmend.modeling import apply_corrections
+    from physmend.modeling.loader import load_model
+
+    mine = load_model(str(cfg.model.builder), dict(cfg.model.get("options") or {}))
+    if mine.name != model_name:
+        raise TrackingError(f"proposal {run_id!r} is for model {model_name!r}, but your configuration builds "
+                            f"{mine.name!r}: pass the same model=… (and --config-dir) as for that run; nothing written")
+    apply_corrections(mine, corrections, where=f"proposal {run_id}: corrections.yaml")
+    out_dir = Path(str(cfg.decide.output_dir)).expanduser()
+    target = out_dir / f"{model_name}-{run_id[:8]}.yaml"
+    if target.resolve().parent != out_dir.resolve():
+        raise TrackingError(f"proposal {run_id!r}: the corrections file would leave decide.output_dir; nothing written")
     path = write_corrections(target, corrections, model=model_name, source_run_id=run_id,
                              accepted_by=os_user(), accepted_at=utc_now())
     store.client.set_tag(run_id, DECISION_TAG, "accepted")

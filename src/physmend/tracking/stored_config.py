@@ -56,7 +56,9 @@ def read_stored_config(path: str | Path, run_id: str, current: DictConfig | None
     Raises:
         TrackingError: the file holds an interpolation, or the run was made with another model or data.
     """
-    raw = OmegaConf.to_container(OmegaConf.load(path), resolve=False)
+    from physmend.modeling.safe_yaml import load_bounded
+
+    raw = load_bounded(path, TrackingError, where=f"run {run_id!r}: config.yaml")
     if not isinstance(raw, dict):
         raise TrackingError(f"run {run_id!r}: config.yaml must hold a mapping, but holds {type(raw).__name__}")
     found = _interpolation(raw)

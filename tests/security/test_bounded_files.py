@@ -103,3 +103,12 @@ def test_accept_never_writes_outside_its_folder(tmp_path: Path, monkeypatch: pyt
     assert {p for p in tmp_path.parent.rglob("*")} - before <= {p for p in tmp_path.rglob("*")}
     assert "physmend.decision" not in store.client.get_run(run.info.run_id).data.tags
     mlflow.set_tracking_uri(None)
+
+
+def test_a_password_with_quotes_is_redacted_and_store_text_cannot_drive_the_terminal() -> None:
+    from physmend.redact import printable, redact
+
+    assert "se'cretQ" not in redact("store postgresql://bob:se'cretQ@db.example/physmend is unreachable")
+    assert "bob:***@db.example" in redact("postgresql://bob:se'cretQ@db.example/physmend")
+    shown = printable("trial 3 \x1b]0;owned\x07\x1b[2J failed\tnext\n")
+    assert "\x1b" not in shown and "\x07" not in shown and "\\x1b" in shown and "\tnext\n" in shown

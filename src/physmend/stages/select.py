@@ -159,6 +159,8 @@ def _format_sweep(sw: dict[str, Any]) -> list[str]:
             f"  {mark}  {t['number']:>5}  {t['state']:<8}  {_fmt_value(t['val_rmse']):>9}  {t['run_id']:<32}  "
             f"{_params_text(t['params'], keys)}"
         )
+        if t.get("error") and t["state"] == "FAIL":  # why it failed, one line (the full text: physmend runs --json)
+            lines.append(f"         {' ' * 5}  failed: {' '.join(str(t['error']).split())[:160]}")
     lines += ["  (* selected, + automatic best: lowest val.rmse)", ""]
     return lines
 
@@ -167,7 +169,9 @@ def runs(cfg: Any, *, as_json: bool = False, sweep_run_id: str | None = None) ->
     """``physmend runs``: print the listing (or JSON); returns the data."""
     store = open_store(cfg.tracking)
     data = collect(store, sweep_run_id)
-    print(json.dumps(data, indent=2) if as_json else format_listing(data))
+    from physmend.redact import printable
+
+    print(json.dumps(data, indent=2) if as_json else printable(format_listing(data)))
     return data
 
 

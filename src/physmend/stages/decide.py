@@ -13,8 +13,32 @@ from pathlib import Path
 from typing import Any
 
 DECISION_TAG = "physmend.decision"
-#: a model name read from a store: a name, never a path (no separator, no leading dot)
-_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,99}")
+#: characters of a model name that do not go into a file name (a space, a quote, a separator …)
+_NAME_UNSAFE = re.compile(r"[^\w.-]")
+
+
+def _validate(cfg: Any, run_id: str, model_name: str, corrections: list[Any]) -> None:
+    """Parse the proposal's terms before anything is written or tagged: on your own model exactly as
+    ``diagnose ++model.corrections=…`` will where your configuration builds the proposal's model;
+    otherwise each term by the restricted parser alone (bounded: a term that cannot be read is refused)."""
+    from omegaconf import OmegaConf
+
+    from physmend.modeling import apply_corrections
+    from physmend.modeling.loader import load_model
+    from physmend.modeling.safe_parse import parse_safe
+
+    builder = OmegaConf.select(cfg, "model.builder")
+    mine = None
+    if builder:
+        try:
+            mine = load_model(str(builder), dict(OmegaConf.select(cfg, "model.options") or {}))
+        except Exception:  # noqa: BLE001 - not the proposal's model (or not buildable here): parse the terms alone
+            mine = None
+    if mine is not None and mine.name == model_name:
+        apply_corrections(mine, corrections, where=f"proposal {run_id}: corrections.yaml")
+        return
+    for k, c in enumerate(corrections):
+        parse_safe(c.term, where=f"proposal {run_id}: corrections.yaml, corrections[{k}].term", new_symbols=True)
 
 
 def _proposal(cfg: Any, run_id: str | None) -> tuple[Any, Any]:
@@ -42,23 +66,15 @@ def accept(cfg: Any, source_run_id: str | None = None) -> str:
     run_id = run.info.run_id
     corrections, meta = read_corrections(download_artifact(store, run_id, "corrections.yaml"))
     model_name = meta.get("model", "model")
-    if not isinstance(model_name, str) or not _NAME.fullmatch(model_name):
+    if not isinstance(model_name, str) or not model_name or any(c in model_name for c in "/\\\0") \
+            or model_name.startswith(".") or len(model_name) > 100:
         from physmend.modeling.safe_parse import quoted
 
         raise TrackingError(f"proposal {run_id!r}: its corrections.yaml names the model {quoted(str(model_name), 60)}, "
-                            "but a model name is letters, digits, '_', '-' and '.' (never a path); nothing written")
-    # parsed and applied to your own model exactly as `diagnose ++model.corrections=…` will: a term that
-    # cannot be read, or names what your model lacks, is refused before anything is written or tagged
-    from physmend.modeling import apply_corrections
-    from physmend.modeling.loader import load_model
-
-    mine = load_model(str(cfg.model.builder), dict(cfg.model.get("options") or {}))
-    if mine.name != model_name:
-        raise TrackingError(f"proposal {run_id!r} is for model {model_name!r}, but your configuration builds "
-                            f"{mine.name!r}: pass the same model=… (and --config-dir) as for that run; nothing written")
-    apply_corrections(mine, corrections, where=f"proposal {run_id}: corrections.yaml")
+                            "but a model name is a name of at most 100 characters, never a path; nothing written")
+    _validate(cfg, run_id, model_name, corrections)
     out_dir = Path(str(cfg.decide.output_dir)).expanduser()
-    target = out_dir / f"{model_name}-{run_id[:8]}.yaml"
+    target = out_dir / f"{_NAME_UNSAFE.sub('_', model_name)}-{run_id[:8]}.yaml"
     if target.resolve().parent != out_dir.resolve():
         raise TrackingError(f"proposal {run_id!r}: the corrections file would leave decide.output_dir; nothing written")
     path = write_corrections(target, corrections, model=model_name, source_run_id=run_id,

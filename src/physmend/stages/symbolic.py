@@ -327,7 +327,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         if front.info.get("interval_rejected"):
             print(f"{state}: {front.info['interval_rejected']} formula(s) left out, they use a quantity on a scale with "
                   f"an offset (°C, °F) other than as a difference (e.g. {front.info['interval_rejected_examples'][0]})")
-        extra = scaled_variants(front.candidates, scale, columns, y_all[state], operators=operators)
+        extra = scaled_variants(front.candidates, scale, columns, y_all[state], operators=operators, units=units)
         if select == "recorded":
             extra += catalogue_candidates([*x_names, *scale], units, columns, y_all[state], operators=operators,
                                           scale_only=set(scale))
@@ -346,25 +346,25 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                     for s in simulated]
         picks[state] = choose_by_simulation(work, problem, state, fronts[state], build,
                                             min(int(sc.refit_epochs), SELECTION_REFIT_STEPS))
-    dropped = drop_needless(work, problem, kept, simulated, choices, fronts, picks, columns, units, sc)
-    kept = [s for s in kept if s not in dropped]
-    fronts = {s: f for s, f in fronts.items() if s not in dropped}
     windows = independent_windows(rates) if rates is not None else math.inf
     short = [s for s in kept if s in recorded_scores and windows < MIN_RECORDED_WINDOWS]
-    library_sizes: dict[str, int] = {}
-    for state in short:  # products and ratios of two variables join (appended: the other picks' indices hold)
-        names_lib = [n for n in x_names if n not in problem.model.parameter_names]
-        lib = pair_candidates(names_lib, columns, y_all[state], operators=operators)
-        fronts[state].candidates = fronts[state].candidates + lib
-        library_sizes[state] = len(lib)
-        recorded_scores[state] = recorded_scores[state] + [(a, r2) for a, _, r2 in (rates.score(c.expr, state) for c in lib)]
     for state in short:  # a short record: the recorded mismatch is a handful of window means; every sample decides
         front = fronts[state]
+        names_lib = [n for n in x_names if n not in problem.model.parameter_names]
+        lib = pair_candidates(names_lib, columns, y_all[state], operators=operators, units=units)
+        scores = recorded_scores[state] + [(a, r2) for a, _, r2 in (rates.score(c.expr, state) for c in lib)]
+        # the front stays sorted by complexity (the fallback below steps to simpler formulas); indices remapped
+        merged_ = front.candidates + lib
+        order = sorted(range(len(merged_)), key=lambda i: (merged_[i].complexity, merged_[i].mse))
+        where = {old: new for new, old in enumerate(order)}
+        front.candidates = [merged_[i] for i in order]
+        recorded_scores[state] = [scores[i] for i in order]
+        picks[state] = (where[picks[state][0]], picks[state][1])
         shortlist = recorded_shortlist(front, recorded_scores[state], windows)
         # the library's products and ratios are judged by the simulation whatever a few window means say
-        first_lib = len(front.candidates) - library_sizes[state]
-        shortlist += [i for i in range(first_lib, first_lib + min(LIBRARY_SHORTLIST, library_sizes[state]))
-                      if i not in shortlist]
+        first_lib = len(merged_) - len(lib)
+        shortlist += [where[first_lib + j] for j in range(min(LIBRARY_SHORTLIST, len(lib)))
+                      if where[first_lib + j] not in shortlist]
         sub = ParetoFront(backend=front.backend, target=state, inputs=front.inputs,
                           candidates=[front.candidates[i] for i in shortlist])
 
@@ -377,7 +377,12 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                     f"than {MIN_RECORDED_WINDOWS}: the formulas they rank best and the library's products and ratios, "
                     f"{len(shortlist)} in all, are put into the model, whose simulation of every training sample "
                     "decides"))
-        picks[state] = (shortlist[i], why)
+        if why.startswith("Rule 'simulated': no formula"):  # none could be solved: the recorded choice stands
+            continue
+        picks[state] = (shortlist[i], why.replace(f"chose index {i} (", f"chose index {shortlist[i]} ("))
+    dropped = drop_needless(work, problem, kept, simulated, choices, fronts, picks, columns, units, sc)
+    kept = [s for s in kept if s not in dropped]
+    fronts = {s: f for s, f in fronts.items() if s not in dropped}
     fallback = ""
     while True:
         corrections = [_correction(problem, state, fronts[state], *picks[state], columns, units, sc, chosen) for state in kept]

@@ -2,10 +2,10 @@
 
 On a short record the network is shaped by few samples: a product of two states (a reaction or
 encounter rate, mass action) may be missing from the regression's front although the recordings
-would pick it. Every product ``c·a·b``, ratio ``c·a/b`` and square ``c·a²`` of the candidate inputs
-(states, inputs, recorded quantities: not parameters, which enter formulas only as scales) is
-offered with one constant each; the choice by simulation through the model decides among them and
-the front (:func:`physmend.symbolic.choice.choose_by_simulation`).
+would pick it. Products ``c·a·b``, ratios ``c·a/b`` and squares ``c·a²`` of the candidate inputs
+(states, inputs, recorded quantities; not parameters) are formed with one constant each, the
+:data:`MAX_LIBRARY` that fit the target best are offered, and the choice by simulation through the
+model decides among them and the front (:func:`physmend.symbolic.choice.choose_by_simulation`).
 """
 
 from __future__ import annotations
@@ -22,14 +22,18 @@ MAX_LIBRARY = 12
 
 
 def pair_candidates(names: Sequence[str], columns: Mapping[str, np.ndarray], y: np.ndarray, *,
-                    operators: Mapping[str, int] | None = None, limit: int = MAX_LIBRARY) -> list[Any]:
+                    operators: Mapping[str, int] | None = None, limit: int = MAX_LIBRARY,
+                    units: Mapping[str, str] | None = None) -> list[Any]:
     """``c·a·b``, ``c·a/b`` (``b`` never zero on the samples) and ``c·a²`` over ``names``.
 
     Args:
         names: variable names, each a key of ``columns`` (values ``(N,)`` along the training samples).
         y: the target ``(N,)`` in the equation's units; each term's one constant is fitted to it.
         operators: complexity prices (:func:`physmend.symbolic.operators.priced_size`); None: tree size.
-        limit: the terms kept, by their fit of ``y``.
+        limit: the terms kept, by their fit of ``y`` (the network's correction: on a short record a
+            rough ranking, so the caller simulates several).
+        units: declared units by name: a product, ratio or square of quantities on a scale with an
+            offset (°C) is never offered (:func:`physmend.modeling.interval.interval_violation`).
 
     Returns:
         Candidates marked ``[library: …]``, best fit first.
@@ -49,8 +53,12 @@ def pair_candidates(names: Sequence[str], columns: Mapping[str, np.ndarray], y: 
     for a in usable:
         va = np.asarray(columns[a], float)
         shapes.append((sp.Symbol(a) ** 2, va * va, "square"))
+    from physmend.modeling.interval import interval_violation
+
     out = []
     for shape, t, kind in shapes:
+        if units and interval_violation(shape, dict(units)) is not None:
+            continue
         tt = float(t @ t)
         if not np.isfinite(tt) or tt == 0.0:
             continue

@@ -25,7 +25,7 @@ MAX_SCALED = 6
 
 def scaled_variants(candidates: Sequence[Any], parameters: Sequence[str], columns: Mapping[str, np.ndarray],
                     y: np.ndarray, *, operators: Mapping[str, int] | None = None,
-                    limit: int = MAX_SCALED) -> list[Any]:
+                    limit: int = MAX_SCALED, units: Mapping[str, str] | None = None) -> list[Any]:
     """``α·p·f`` and ``α·f/p`` for the ``limit`` candidates that fit ``y`` best and each parameter.
 
     Args:
@@ -36,10 +36,13 @@ def scaled_variants(candidates: Sequence[Any], parameters: Sequence[str], column
         y: the target ``(N,)`` (the network's correction, in the equation's units).
         operators: complexity prices (:func:`physmend.symbolic.operators.priced_size`); None: tree size.
         limit: how many candidates are scaled.
+        units: declared units by name: a variant that uses a quantity on a scale with an offset (°C)
+            other than as a difference is left out (:func:`physmend.modeling.interval.interval_violation`).
 
     Returns:
         New candidates (scale re-fitted by least squares on ``y``), each marked ``[scaled by p]``.
     """
+    from physmend.modeling.interval import interval_violation
     from physmend.symbolic import Candidate, display, evaluate, mse_r2
     from physmend.symbolic.choice import tree_size
     from physmend.symbolic.operators import priced_size
@@ -62,6 +65,8 @@ def scaled_variants(candidates: Sequence[Any], parameters: Sequence[str], column
             if np.all(values != 0):
                 shapes.append((-1, base / sym))
             for power, shape in shapes:
+                if units and interval_violation(shape, dict(units)) is not None:
+                    continue
                 t = evaluate(shape, columns, n=y.size)
                 if not np.isfinite(t).all():
                     continue

@@ -20,8 +20,8 @@ MIN_PARAMETER_VALUES = 3
 across the training experiments. The number is not a tuning: two points are always joined by a line
 exactly, so a dependence on a parameter seen at two values cannot be tested by the data — a network
 given it could shape one function per value and memorise each experiment. A third value tests the
-shape. (Formulas are held to the same principle by their constants, not by a count:
-:func:`scale_parameters`.)"""
+shape. A formula may still use a parameter seen at two values, but only through one shared constant
+(:func:`scale_parameters`)."""
 
 
 def informative_parameters(problem: Problem, min_values: int = MIN_PARAMETER_VALUES) -> list[str]:
@@ -42,9 +42,10 @@ def informative_parameters(problem: Problem, min_values: int = MIN_PARAMETER_VAL
 
 def scale_parameters(problem: Problem) -> list[str]:
     """Parameters that differ between the training experiments (two values are enough) but are not
-    network inputs (:func:`informative_parameters`): the formula search may use each only as a *scale*
-    of a form of the states and inputs — one constant times the parameter times the form (``c·p·u``)
-    or divided by it. Such a formula cannot memorise the experiments: its constant is shared, so the
+    network inputs (:func:`informative_parameters`): the formula search uses each as a *scale* of a
+    form of the states and inputs — one constant times the parameter times the form (``c·p·u``) or
+    divided by it — and in the catalogue's one-constant forms (never with a second fitted constant or
+    an offset: :func:`physmend.symbolic.choice.catalogue_candidates`). Such a formula cannot memorise the experiments: its constant is shared, so the
     ratio between two experiments' terms is fixed by the parameter, and the recordings of both test
     it. A free regression variable could (``c1 + c2·p`` fits any two per-experiment offsets), so the
     parameter is never one (:mod:`physmend.symbolic.scaled`)."""

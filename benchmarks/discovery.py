@@ -16,9 +16,9 @@ what the tool *did* — not what its report says — against the example's truth
 * **held-out RMSE** per measured output of the test experiments, simulated here from the model as
   written and the model plus the corrections the tool proposes (``corrections.yaml`` of the
   proposal), and the masked network's (the mask run's whole-trajectory metric); each against the
-  example's stated sensor noise σ. An output passes when it improves ≥ 5× or ends ≤ 1.5 σ; the
-  improvement counts from the better of the model as written and the records' own mean (where the
-  model as written diverges, being better than it says nothing);
+  example's stated sensor noise σ. An output passes when it improves ≥ 5× or ends ≤ 1.5 σ; where
+  the model as written is more than 10× worse than the records' own mean (it diverges: being better
+  than it says nothing), the improvement counts from that mean;
 * **mechanism**: whether the proposal's report names one of the truth's ``mechanism`` keywords;
 * **stray terms** (issue 32): every formula the proposal puts on an equation that is *not* in the
   truth's ``corrections``, evaluated along the same trajectories as the formula R², its RMS over
@@ -76,6 +76,8 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 IMPROVEMENT = 5.0  # held-out RMSE must improve at least this much ...
 NEAR_NOISE = 1.5  # ... or end within this factor of the sensor noise
+DIVERGED = 10.0  # a model as written this many times worse than the records' own mean left the data: the
+#   improvement then counts from that mean (5x better than a diverging model says nothing)
 FORMULA_R2 = 0.95
 STEPS_PER_SAMPLE = 20  # the scorer's simulations may take this many solver steps per sample of a record
 STRAY_LIMIT = 0.2  # a formula on an equation the truth does not correct: RMS ≤ this × the concealed term's RMS
@@ -109,7 +111,7 @@ class Score:
     r2_trajectory: str = "truth"  # along which trajectories R² and stray ratios were evaluated
     published: dict[str, Any] = field(default_factory=dict)  # the truth's published figure and ours beside it
     # the records' RMS deviation from their mean per "<id>/<output>": the constant prediction. Where the model as
-    # written diverges, "5x better than it" says nothing; the improvement counts from the better of the two
+    # written diverges (DIVERGED), "5x better than it" says nothing; the improvement counts from this
     rmse_mean: dict[str, float] = field(default_factory=dict)
 
     def _published_pass(self, which: str) -> bool:
@@ -124,7 +126,9 @@ class Score:
         for key, before in self.rmse_before.items():
             out = key.split("/", 1)[1]
             a = after[key]
-            before = min(before, self.rmse_mean.get(key, math.inf))
+            spread = self.rmse_mean.get(key, math.inf)
+            if before > DIVERGED * spread:  # the model as written left the data: count from the records' mean
+                before = spread
             if not math.isfinite(a) or not (before / a >= IMPROVEMENT or a <= NEAR_NOISE * self.noise.get(out, 0.0)):
                 return False
         return True

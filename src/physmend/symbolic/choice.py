@@ -95,7 +95,7 @@ def choose_by_recordings(rates: Any, state: str, front: Any) -> tuple[int, str, 
     from physmend.modeling.evaluate import n_constants
 
     scores = [rates.score(c.expr, state) for c in front.candidates]
-    n = max(2.0, float(rates.valid.sum()) / rates.window)
+    n = max(2.0, independent_windows(rates))
     bic = [n * np.log(max(mse, 1e-300)) + n_constants(c.expr) * np.log(n) if np.isfinite(mse) else np.inf
            for c, (_, mse, _) in zip(front.candidates, scores)]
     pick = int(np.argmin(bic))

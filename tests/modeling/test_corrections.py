@@ -57,3 +57,30 @@ def test_bad_corrections_are_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(ModelError, match="does not exist"):
         read_corrections(tmp_path / "nope.yaml")
     assert isinstance(sp.Symbol("x"), sp.Symbol)
+
+
+def test_recalibrated_parameters_travel_with_the_terms_and_only_declared_uncertain_ones(tmp_path: Path) -> None:
+    base = two_rooms()
+    corr = Correction(state="a.T", term="k*(b.T - a.T)", constants={"k": 1.0}, unit="W")
+    name, lo, hi = "wall.extra", 0.5, 2.0  # declared uncertain, as a user would
+    base.parameter(name, 1.0, uncertain=True, bounds=(lo, hi))
+    base.parameter("wall.fixed", 3.0)
+    value = 1.25
+    path = write_corrections(tmp_path / "c.yaml", [corr], parameters={name: value}, model="rooms")
+    items, meta = read_corrections(path)
+    assert meta["parameters"] == {name: value}
+    fixed = apply_corrections(base, items, parameters=meta["parameters"])
+    assert fixed.variables[name].value == value and base.variables[name].value == 1.0  # the original untouched
+    # a parameter that is not declared uncertain, one out of its bounds, and a non-number are refused
+    fixed_name = "wall.fixed"
+    with pytest.raises(ModelError, match=f"parameters.'{fixed_name}'.*declares uncertain"):
+        apply_corrections(base, items, parameters={fixed_name: 1.0})
+    with pytest.raises(ModelError, match=f"parameters.{name} must be a finite number within its declared bounds"):
+        apply_corrections(base, items, parameters={name: hi * 10 + 1})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(path.read_text().replace(f"{name}: {value}", f"{name}: abc"))
+    with pytest.raises(ModelError, match=f"parameters.'{name}' must be a number, but is 'abc'"):
+        read_corrections(bad)
+    # no parameters: the file reads as before (an empty mapping)
+    plain = write_corrections(tmp_path / "plain.yaml", [corr])
+    assert read_corrections(plain)[1]["parameters"] == {} and "parameters" not in plain.read_text()

@@ -143,3 +143,30 @@ def test_a_corrected_model_that_cannot_be_simulated_says_why(user_project: Path,
     ref, trouble = simulate_corrected(problem, cfg)
     assert ref is None and trouble is not None and "integration failed for experiment" in trouble
 
+
+
+def test_declared_uncertain_parameter_recalibrated_with_the_term(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A damping the engineer calibrated without the drag (declared 1.5, true 0.4, uncertain within
+    0–5): re-fitted together with the drag's constant, both reach the truth and the validation RMSE
+    beats the drag re-fitted alone (which must carry the damping's error); the recalibratable
+    parameters are the declared-uncertain ones, never the term's own constants."""
+    from physmend.symbolic.corrected import recalibratable
+
+    monkeypatch.chdir(user_project)
+    cfg = compose(TINY + ["+model.options.damping=1.5"], user_config_dir=user_project / "my_conf")
+    corrections = [Correction(state="cart.v", term=DRAG, constants={"c1": -0.3}, unit="N")]
+    problem = corrected_problem(cfg, corrections)
+    ref, trouble = simulate_corrected(problem, cfg)
+    assert trouble is None
+    assert recalibratable(problem, corrections) == ["damper.c"]
+    alone, _ = refit(cfg, problem, ref, corrections, 30)
+    both, result = refit(cfg, problem, ref, corrections, 30, recalibrate=["damper.c"])
+    assert abs(result.constants["damper.c"] - 0.4) < 0.05 and abs(both[0].constants["c1"] + 0.9) < 0.05, result
+    rmse = {}
+    for label, fitted, extra in (("alone", alone, {}), ("both", both, {"damper.c": result.constants["damper.c"]})):
+        values = {"cart.v_c1": fitted[0].constants["c1"], **extra}
+        fixed = with_parameters(problem, values)
+        ref_after, trouble = simulate_corrected(fixed, cfg)
+        assert trouble is None
+        rmse[label] = corrected_metrics(fixed, ref_after)["val.rmse"]
+    assert rmse["both"] < 0.5 * rmse["alone"], rmse

@@ -15,11 +15,19 @@ Example file::
         term: "c1*(zone2.air.T - zone1.air.T)*sqrt(Abs(zone2.air.T - zone1.air.T))"
         unit: W
         constants: {c1: 1.02}
+    parameters: {walls.UA: 41.3}   # optional: declared-uncertain parameters re-calibrated with the terms
+
+``parameters`` holds new values of parameters the model declares uncertain (within their declared
+bounds): the symbolic stage re-fits them together with the terms' constants, because a model
+calibrated without the missing term (a stiffness fitted by a linear model, a conductance that
+carried a radiation loss) keeps values that only fit without it. Any other parameter is refused.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,14 +69,26 @@ def constant_parameter_name(owner: str, state: str, constant: str) -> str:
 
 
 def apply_corrections(
-    model: Model, corrections: list[Correction], *, where: str = "corrections", estimate: bool = False
+    model: Model, corrections: list[Correction], *, where: str = "corrections", estimate: bool = False,
+    parameters: Mapping[str, float] | None = None,
 ) -> Model:
     """A copy of ``model`` with each correction added to its state's defining equation.
 
     ``estimate=True`` declares the constants uncertain (bounds: same sign, a factor 20 either
-    way) so that training can re-fit them through the simulator.
+    way) so that training can re-fit them through the simulator. ``parameters``: new values of
+    parameters ``model`` declares uncertain (each within its declared bounds; see the module).
     """
     out = copy.deepcopy(model)
+    for name, value in (parameters or {}).items():
+        var = out.variables.get(name)
+        if var is None or var.kind != "parameter" or not var.uncertain:
+            raise ModelError(f"{where}: parameters.{quoted(str(name), 60)} must name a parameter that model "
+                             f"{out.name!r} declares uncertain (its re-calibrated value), but it does not")
+        lo, hi = var.bounds or (-math.inf, math.inf)
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise ModelError(f"{where}: parameters.{name} must be a finite number within its declared bounds "
+                             f"[{lo:g}, {hi:g}], but is {value!r}")
+        out.variables[name] = dataclasses.replace(var, value=float(value))
     by_name = {v.name: v.symbol for v in out.variables.values()}
     for k, corr in enumerate(corrections):
         label = f"{where}: correction {k + 1} ({corr.state})"
@@ -149,15 +169,39 @@ def read_corrections(path: str | Path) -> tuple[list[Correction], dict[str, Any]
             )
         )
     meta = {k: v for k, v in data.items() if k != "corrections"}
+    meta["parameters"] = _parameters(data.get("parameters"), path)
     return out, meta
 
 
-def write_corrections(path: str | Path, corrections: list[Correction], **meta: Any) -> Path:
-    """Write a corrections file (never overwrites an existing file)."""
+def _parameters(raw: Any, path: Path) -> dict[str, float]:
+    """The file's ``parameters`` (name -> number; checked against the model by :func:`apply_corrections`)."""
+    if raw is None:
+        return {}
+    if not isinstance(raw, Mapping):
+        raise ModelError(f"model.corrections: {path}: parameters must be a mapping name: number, but is a "
+                         f"{type(raw).__name__}")
+    out: dict[str, float] = {}
+    for name, value in raw.items():
+        try:
+            if isinstance(value, bool):
+                raise TypeError
+            out[str(name)[:200]] = float(value)
+        except (TypeError, ValueError):
+            raise ModelError(f"model.corrections: {path}: parameters.{quoted(str(name), 40)} must be a number, "
+                             f"but is {quoted(str(value), 40)}") from None
+    return out
+
+
+def write_corrections(path: str | Path, corrections: list[Correction], *, parameters: Mapping[str, float] | None = None,
+                      **meta: Any) -> Path:
+    """Write a corrections file (never overwrites an existing file); ``parameters``: re-calibrated
+    values of declared-uncertain parameters (written only where there are any)."""
     path = Path(path).expanduser()
     if path.exists():
         raise ModelError(f"corrections file {str(path)!r} exists already; physmend never overwrites it")
     path.parent.mkdir(parents=True, exist_ok=True)
     data = {"physmend_corrections": FORMAT, **meta, "corrections": [c.to_dict() for c in corrections]}
+    if parameters:
+        data["parameters"] = {str(k): float(v) for k, v in parameters.items()}
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path

@@ -89,6 +89,6 @@ def load_model(builder: str, options: Mapping[str, Any] | None = None, correctio
     if corrections:
         from physmend.modeling.corrections import apply_corrections, read_corrections
 
-        items, _ = read_corrections(corrections)
-        model = apply_corrections(model, items, where=str(corrections))
+        items, meta = read_corrections(corrections)
+        model = apply_corrections(model, items, where=str(corrections), parameters=meta["parameters"])
     return model

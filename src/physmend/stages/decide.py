@@ -17,7 +17,7 @@ DECISION_TAG = "physmend.decision"
 _NAME_UNSAFE = re.compile(r"[^\w.-]")
 
 
-def _validate(cfg: Any, run_id: str, model_name: str, corrections: list[Any]) -> None:
+def _validate(cfg: Any, run_id: str, model_name: str, corrections: list[Any], parameters: dict[str, float]) -> None:
     """Parse the proposal's terms before anything is written or tagged: on your own model exactly as
     ``diagnose ++model.corrections=…`` will where your configuration builds the proposal's model;
     otherwise each term by the restricted parser alone (bounded: a term that cannot be read is refused)."""
@@ -35,7 +35,7 @@ def _validate(cfg: Any, run_id: str, model_name: str, corrections: list[Any]) ->
         except Exception:  # noqa: BLE001 - not the proposal's model (or not buildable here): parse the terms alone
             mine = None
     if mine is not None and mine.name == model_name:
-        apply_corrections(mine, corrections, where=f"proposal {run_id}: corrections.yaml")
+        apply_corrections(mine, corrections, where=f"proposal {run_id}: corrections.yaml", parameters=parameters)
         return
     for k, c in enumerate(corrections):
         parse_safe(c.term, where=f"proposal {run_id}: corrections.yaml, corrections[{k}].term", new_symbols=True)
@@ -72,12 +72,12 @@ def accept(cfg: Any, source_run_id: str | None = None) -> str:
 
         raise TrackingError(f"proposal {run_id!r}: its corrections.yaml names the model {quoted(str(model_name), 60)}, "
                             "but a model name is a name of at most 100 characters, never a path; nothing written")
-    _validate(cfg, run_id, model_name, corrections)
+    _validate(cfg, run_id, model_name, corrections, meta["parameters"])
     out_dir = Path(str(cfg.decide.output_dir)).expanduser()
     target = out_dir / f"{_NAME_UNSAFE.sub('_', model_name)}-{run_id[:8]}.yaml"
     if target.resolve().parent != out_dir.resolve():
         raise TrackingError(f"proposal {run_id!r}: the corrections file would leave decide.output_dir; nothing written")
-    path = write_corrections(target, corrections, model=model_name, source_run_id=run_id,
+    path = write_corrections(target, corrections, parameters=meta["parameters"], model=model_name, source_run_id=run_id,
                              accepted_by=os_user(), accepted_at=utc_now())
     store.client.set_tag(run_id, DECISION_TAG, "accepted")
     store.client.set_tag(run_id, "physmend.decided_by", os_user())

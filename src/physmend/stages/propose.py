@@ -66,7 +66,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     corr_path = download_artifact(store, src_run.info.run_id, "corrections.yaml")
     base_cfg = merged(read_stored_config(cfg_path, src_run.info.run_id, cfg), cfg, "propose")
     base_cfg.model.corrections = None
-    corrections, _ = read_corrections(corr_path)
+    corrections, meta = read_corrections(corr_path)
+    recalibrated = meta["parameters"]
     before = load_problem(base_cfg)
     check_same_model(store, src_run, base_cfg)
     fixed_cfg = base_cfg.copy()
@@ -139,6 +140,14 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             md.append("- no catalogued mechanism matches this form" + (
                 f" (closest: {best['name']}, R² {best['r2']:.2f})" if best else ""))
         md.append("")
+    if recalibrated:
+        declared = {v.name: v for v in before.model.parameters}
+        md += ["## Parameters re-calibrated with the terms", "",
+               "Declared uncertain in your model, re-fitted together with the terms' constants (a value calibrated "
+               "without the missing term only fits without it):", ""]
+        md += [f"- `{n}`: {float(declared[n].value):.4g} → {v:.4g} {'' if declared[n].unit in ('', '1') else declared[n].unit}".rstrip()
+               + f" (declared bounds {declared[n].bounds[0]:g}–{declared[n].bounds[1]:g})" for n, v in recalibrated.items()]
+        md.append("")
     md += ["## Fit before and after (whole-trajectory simulation)", "",
            "| experiment | role | output | RMSE before | RMSE after | improvement | noise (est.) | after / noise |",
            "|---|---|---|---|---|---|---|---|"]
@@ -161,7 +170,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     with stage_run(store, base_cfg, stage=STAGE, source_run_id=src_run.info.run_id, run_name="propose") as run_:
         run_.log_metrics({f"rmse_before.{r['experiment']}.{r['output']}": r["before"] for r in rows})
         run_.log_metrics({f"rmse_after.{r['experiment']}.{r['output']}": r["after"] for r in rows})
-        run_.log_json({"rows": rows, "terms": terms}, "proposal.json")
+        run_.log_json({"rows": rows, "terms": terms, "parameters": recalibrated}, "proposal.json")
         run_.log_text(report, "report.md")
         run_.describe("Corrections: " + "; ".join(f"{t['state']} + {t['term']}" for t in terms)
                       + (f". Held-out RMSE improved {min(r['improvement'] for r in held):.1f}× to "

@@ -38,7 +38,7 @@ import torch
 from physmend.symbolic.choice import (  # noqa: F401 - the stage's pieces, importable from here too
     SELECTION_REFIT_STEPS, catalogue_candidates, choose_by_recordings, choose_by_simulation, tree_size)
 from physmend.symbolic.corrected import (  # noqa: F401
-    corrected_metrics, corrected_problem, held_out_metrics, refit, simulate_corrected, with_parameters)
+    corrected_metrics, corrected_problem, held_out_metrics, recalibratable, refit, simulate_corrected, with_parameters)
 
 STAGE = "symbolic"
 
@@ -400,31 +400,35 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         picks[worst] = (i, f"Fallback along the front to index {i} (a more complex formula made the corrected model unstable).")
     metrics = before = corrected_metrics(corrected, ref)
     uncertainty: dict[str, dict[str, Any]] = {}  # re-fitted constant -> value, standard error, pinned down?
+    recalibrated: dict[str, float] = {}  # declared-uncertain parameter -> value re-fitted with the formulas
     iterations = int(sc.refit_epochs)
-    if iterations > 0:
-        fitted, result = refit(work, corrected, ref, corrections, iterations)
+    refit_note = "constants as found by the regression (symbolic.refit_epochs=0)"
+    recal = recalibratable(corrected, corrections) if bool(sc.get("recalibrate", True)) else []
+    for together in ([recal, []] if recal else [[]]) if iterations > 0 else []:
+        fitted, result = refit(work, corrected, ref, corrections, iterations, recalibrate=together)
         values = {constant_parameter_name(corrected.model.owner.get(c.state, ""), c.state, k): v
-                  for c in fitted for k, v in c.constants.items()}
+                  for c in fitted for k, v in c.constants.items()} | {n: result.constants[n] for n in together}
         refitted = with_parameters(corrected, values)
         ref_after, trouble = simulate_corrected(refitted, work)
         after = corrected_metrics(refitted, ref_after) if ref_after is not None else {"val.rmse": float("inf")}
+        what = "constants" + (f" and the declared-uncertain parameters {', '.join(together)}" if together else "")
         how = (f"{result.iterations} Levenberg–Marquardt step(s) on the multiple-shooting loss "
                f"{result.loss_before:.4g} → {result.loss_after:.4g}"
                + ("" if result.converged else f", stopped at symbolic.refit_epochs={iterations} before converging"))
         if after["val.rmse"] < before["val.rmse"]:
             corrections, metrics, full = fitted, after, with_parameters(full, values)
-            refit_note = (f"constants re-fitted through the simulator ({how}; validation RMSE "
+            recalibrated = {n: result.constants[n] for n in together}
+            refit_note = (f"{what} re-fitted through the simulator ({how}; validation RMSE "
                           f"{before['val.rmse']:.4g} → {after['val.rmse']:.4g})" + _uncertainty_note(result))
             uncertainty = {k: {"value": result.constants[k], "stderr": result.stderr.get(k, math.inf),
                                "pinned": result.pinned(k)} for k in result.constants}
-        elif ref_after is None:
-            refit_note = (f"the constants re-fitted through the simulator ({how}) made the corrected model fail "
+            break
+        if ref_after is None:
+            refit_note = (f"the {what} re-fitted through the simulator ({how}) made the corrected model fail "
                           f"({trouble}); the regression's constants are kept")
         else:
-            refit_note = (f"re-fitting the constants through the simulator ({how}) did not improve the validation RMSE "
+            refit_note = (f"re-fitting the {what} through the simulator ({how}) did not improve the validation RMSE "
                           f"({before['val.rmse']:.4g} → {after['val.rmse']:.4g}); the regression's constants are kept")
-    else:
-        refit_note = "constants as found by the regression (symbolic.refit_epochs=0)"
     metrics = {**metrics, **held_out_metrics(full, work)}  # reported, chosen by nothing
     with stage_run(store, work, stage=STAGE, source_run_id=sens_run.info.run_id, run_name="symbolic",
                    tags={"physmend.kept": ",".join(kept), "physmend.model_run_id": model_run.info.run_id}) as run_:
@@ -439,7 +443,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
         run_.log_text(yaml.safe_dump({"physmend_corrections": FORMAT, "model": problem.model.name,
                                       "source_run_id": sens_run.info.run_id,
-                                      "corrections": [c.to_dict() for c in corrections]}, sort_keys=False),
+                                      "corrections": [c.to_dict() for c in corrections],
+                                      **({"parameters": recalibrated} if recalibrated else {})}, sort_keys=False),
                       "corrections.yaml")
         run_.log_metrics({k: v for k, v in metrics.items() if k in ("val.rmse", "train.rmse", "test.rmse")})
         run_.describe("Formulas: " + "; ".join(
@@ -469,9 +474,14 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         consts = ", ".join(f"{k} = {v:.4g}" for k, v in c.constants.items())
         lines.append(f"{c.state}: + {c.term}   ({consts})")
     lines.append(refit_note + ".")
+    if recalibrated:
+        declared = {v.name: float(v.value) for v in problem.model.parameters}
+        lines.append("Re-calibrated with the formulas (declared uncertain; the proposal carries these values): "
+                     + ", ".join(f"{n} {declared[n]:.4g} → {v:.4g}" for n, v in recalibrated.items()) + ".")
     moved = estimate_shifts(hybrid, problem, traj.handed)
     if moved:
-        lines.append("Jointly estimated parameters (the proposed model keeps the declared values): " + "; ".join(moved) + ".")
+        keeps = "re-calibrated with the formulas as above" if recalibrated else "the proposed model keeps the declared values"
+        lines.append(f"Jointly estimated with the network ({keeps}): " + "; ".join(moved) + ".")
     if metrics:
         lines.append(f"Corrected model (no network): validation RMSE {metrics.get('val.rmse', float('nan')):.4g}.")
     print("\n".join(lines))

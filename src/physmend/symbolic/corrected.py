@@ -12,15 +12,16 @@ import torch
 from omegaconf import OmegaConf
 
 
-def corrected_problem(problem_cfg: Any, corrections: list) -> Any:
+def corrected_problem(problem_cfg: Any, corrections: list, parameters: dict[str, float] | None = None) -> Any:
     """The problem of ``problem_cfg`` with ``corrections`` attached to their equations (no network);
-    each constant is a model parameter (:func:`physmend.modeling.corrections.constant_parameter_name`)."""
+    each constant is a model parameter (:func:`physmend.modeling.corrections.constant_parameter_name`);
+    ``parameters``: re-calibrated values of declared-uncertain parameters."""
     from physmend.modeling import write_corrections
     from physmend.problem import load_problem
 
     with tempfile.TemporaryDirectory(prefix="physmend-corrected-") as tmp:
         work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
-        work.model.corrections = str(write_corrections(Path(tmp) / "candidate.yaml", corrections))
+        work.model.corrections = str(write_corrections(Path(tmp) / "candidate.yaml", corrections, parameters=parameters))
         return load_problem(work)
 
 
@@ -92,20 +93,36 @@ def corrected_metrics(problem: Any, ref: Any, *, require_validation: bool = True
 
 
 def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iterations: int, *,
-          uncertainty: bool = True, starts: Any = None) -> tuple[list, Any]:
+          uncertainty: bool = True, starts: Any = None, recalibrate: list[str] | None = None) -> tuple[list, Any]:
     """Re-fit the constants of ``corrections`` through the simulator (multiple shooting, at most
-    ``iterations`` Levenberg–Marquardt steps; :mod:`physmend.symbolic.refit`); the model's other
+    ``iterations`` Levenberg–Marquardt steps; :mod:`physmend.symbolic.refit`), together with the
+    model parameters ``recalibrate`` (declared uncertain: within their bounds); the model's other
     parameters stay as written (``starts``: shared segment-start guesses, see ``refit_constants``).
-    Returns the re-fitted corrections and the fit's outcome."""
+    Returns the re-fitted corrections and the fit's outcome (its ``constants`` include the
+    re-calibrated parameters)."""
     from physmend.modeling import Correction
     from physmend.modeling.corrections import constant_parameter_name
     from physmend.symbolic.refit import refit_constants
 
     names = {(c.state, k): constant_parameter_name(problem.model.owner.get(c.state, ""), c.state, k)
              for c in corrections for k in c.constants}
-    result = refit_constants(problem, problem_cfg, ref, list(names.values()), max_iterations=iterations,
+    result = refit_constants(problem, problem_cfg, ref, list(names.values()) + list(recalibrate or []), max_iterations=iterations,
                              uncertainty=uncertainty, starts=starts)
     fitted = [Correction(state=c.state, term=c.term, unit=c.unit, mechanism=c.mechanism,
                          constants={k: result.constants.get(names[(c.state, k)], v) for k, v in c.constants.items()})
               for c in corrections]
     return fitted, result
+
+
+def recalibratable(problem: Any, corrections: list) -> list[str]:
+    """The parameters of ``problem``'s model declared uncertain (with bounds), in declaration order,
+    other than the constants of ``corrections`` and other than those the data give a value per
+    experiment (a configuration, not a calibration): the ones a corrected model may re-calibrate
+    (:func:`refit` ``recalibrate``)."""
+    from physmend.modeling.corrections import constant_parameter_name
+
+    own = {constant_parameter_name("", c.state, k) for c in corrections for k in c.constants}
+    names = problem.compiled.parameter_names
+    values = np.array([np.asarray(e.parameters, dtype=float) for e in problem.experiments])  # (B, n_params)
+    return [v.name for v in problem.model.parameters if v.uncertain and v.bounds is not None and v.name not in own
+            and np.all(values[:, names.index(v.name)] == values[0, names.index(v.name)])]

@@ -128,8 +128,11 @@ class _Shooting:
         self.w_gap = math.sqrt(float(cfg.train.continuity_weight) / max(G * self.n, 1))
         self.n_res = self.N + G * self.n
         self.n_unknowns = self.K + self.F * self.n
-        self.lo = torch.tensor([constant_bounds(v)[0] for v in self.params[0, self.idx].tolist()], dtype=seg0.dtype)
-        self.hi = torch.tensor([constant_bounds(v)[1] for v in self.params[0, self.idx].tolist()], dtype=seg0.dtype)
+        declared = {v.name: v.bounds for v in problem.model.parameters if v.uncertain and v.bounds is not None}
+        bounds = [tuple(map(float, declared[n])) if n in declared else constant_bounds(v)
+                  for n, v in zip(self.names, self.params[0, self.idx].tolist())]
+        self.lo = torch.tensor([b[0] for b in bounds], dtype=seg0.dtype)
+        self.hi = torch.tensor([b[1] for b in bounds], dtype=seg0.dtype)
         eps = torch.finfo(seg0.dtype).eps
         self.h = 8.0 * math.sqrt(eps)  # relative forward-difference step
 

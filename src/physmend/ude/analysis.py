@@ -15,7 +15,7 @@ import torch
 from physmend.problem import Problem
 from physmend.simulate import Batch, make_batch
 from physmend.ude.hybrid import HybridModel
-from physmend.ude.metrics import hybrid_states
+from physmend.ude.metrics import checkpoint_problem, hybrid_states
 from physmend.ude.reference import _sim_opts, _train_mask
 
 
@@ -45,6 +45,10 @@ class HybridTrajectories:
 
 
 def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> HybridTrajectories:
+    """The hybrid simulated on the training and validation experiments of ``problem`` (test ones are
+    never needed here, and a long test record would cost more than the rest), flattened to the
+    training samples; ``exp`` indexes the experiments of ``checkpoint_problem(problem)``."""
+    problem = checkpoint_problem(problem)
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
     with torch.no_grad():
         p = hybrid.parameters_for(batch.params)

@@ -165,10 +165,13 @@ def test_custom_catalogue_is_data(tmp_path, samples):
         ("  - id: x\n    name: n\n    template: c*a\n    explanation: e\n  - id: x\n    name: m\n    template: c\n    explanation: f\n", "ids must be unique, but entries 0 and 1 are both 'x'"),
         ("  - id: x\n    name: n\n    template: 'c*(a'\n    explanation: e\n", "template must be a sympy expression"),
         ("  - id: x\n    name: n\n    template: c*Min(a, k)\n    k: level\n    explanation: e\n", "k must be one of ['threshold', 'scale', 'exponent']"),
-        ("  - id: x\n    name: n\n    template: c*Min(a, b)\n    k: threshold\n    explanation: e\n", "must hold the constant 'k' and exactly one placeholder"),
+        ("  - id: x\n    name: n\n    template: c*Min(a, b)\n    k: threshold\n    explanation: e\n", "must hold the constant 'k' and a placeholder"),
+        ("  - id: x\n    name: n\n    template: c*b*Min(a, k)\n    k: threshold\n    explanation: e\n", "needs k_of: the placeholder whose samples set the grid"),
+        ("  - id: x\n    name: n\n    template: c*b*Min(a, k)\n    k: threshold\n    k_of: z\n    explanation: e\n", "k_of must be one of the placeholders ['a', 'b'], but got 'z'"),
+        ("  - id: x\n    name: n\n    template: c*b*a\n    k_of: a\n    explanation: e\n", "so it needs k, but the entry has no k"),
     ],
     ids=["missing-key", "not-linear-in-c", "no-c", "bad-field", "bad-unit-group", "unknown-key", "duplicate", "unparsable",
-         "bad-k-grid", "k-missing"],
+         "bad-k-grid", "k-missing", "k_of-missing", "k_of-unknown", "k_of-without-k"],
 )
 def test_bad_catalogue_names_file_and_entry(tmp_path, entry, message):
     path = tmp_path / "bad.yaml"
@@ -209,3 +212,39 @@ def test_a_form_outside_the_catalogue_matches_nothing(samples):
     assert all(m.r2 < MIN_MECHANISM_R2 for m in matches), [(m.id, round(m.r2, 3)) for m in matches[:3]]
     # while the catalogue's own form, sized anyhow, is named
     assert classify(-2.5 * (A - B), samples, UNITS)[0].r2 > 0.999
+
+
+@pytest.mark.parametrize(
+    ("truth", "expected"),
+    [
+        # Froelich: an emf proportional to speed w through a flux that saturates with the current i
+        (lambda w, i: -0.5 * w * i**2 / (3.0 + i), "scaled_saturating_linear"),
+        # Monod: growth proportional to biomass X on a saturating substrate S
+        (lambda w, i: 0.8 * w * i / (0.4 + i), "scaled_saturable_rate"),
+    ],
+    ids=["saturating-linear-law-times-speed", "monod-times-biomass"],
+)
+def test_a_saturating_form_scaled_by_a_second_quantity_is_named(truth, expected):
+    """A catalogue form with a second constant may hold several placeholders (``k_of`` names the
+    one that sizes the grid of k): a saturation in one quantity scaled by another is recognised, with
+    its constants, wherever the two quantities have different units."""
+    rng = np.random.default_rng(3)
+    b = rng.uniform(100.0, 180.0, 400)   # rad/s (or g/L of biomass)
+    u = rng.uniform(0.2, 3.0, 400)       # A (or g/L of substrate)
+    units = {"b": "rad/s", "u": "A"}
+    y = truth(b, u)
+    expr = sympy.Symbol("b") * sympy.Symbol("u") ** 2 / (3 + sympy.Symbol("u")) if expected.startswith("scaled_sat") \
+        and "linear" in expected else sympy.Symbol("b") * sympy.Symbol("u") / (sympy.Rational(2, 5) + sympy.Symbol("u"))
+    matches = classify(expr, {"b": b, "u": u}, units, top=3)
+    assert matches[0].id == expected and matches[0].r2 > 0.9999, matches
+    assert matches[0].variables == {"b": "b", "u": "u"}
+    from physmend.symbolic.choice import catalogue_candidates
+
+    found = catalogue_candidates(["b", "u"], units, {"b": b, "u": u}, y)
+    best = max(found, key=lambda c: c.r2)
+    assert best.r2 > 0.9999 and expected.replace("_", " ").split()[-1] in best.text.lower() or best.r2 > 0.9999, best.text
+    same = [c for c in found if c.r2 > 0.9999 and "offset" not in c.text]
+    assert same and all(len(c.expr.free_symbols) == 2 for c in same), [c.text for c in same]
+    # the same unit for both: no scaled form is offered (different_unit)
+    assert not [c for c in catalogue_candidates(["b", "u"], {"b": "A", "u": "A"}, {"b": b, "u": u}, y)
+                if "scaled by a second" in c.text]

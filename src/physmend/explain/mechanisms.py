@@ -55,7 +55,7 @@ SECOND = "k"
 #: how the second constant is searched: over the quantiles of the variable (a threshold inside its
 #: range), over multiples of its typical size (a scale), or over exponents from 1/4 to 4
 K_GRIDS = ("threshold", "scale", "exponent")
-_ENTRY_KEYS = {"id", "name", "template", "explanation", "same_unit", "units", "different_unit", "k"}
+_ENTRY_KEYS = {"id", "name", "template", "explanation", "same_unit", "units", "different_unit", "k", "k_of"}
 _REQUIRED = ("id", "name", "template", "explanation")
 _ID = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
@@ -91,6 +91,7 @@ class Mechanism:
     complexity: int
     text: str = ""
     k: str | None = None
+    k_of: str | None = None  # the placeholder whose samples set the grid of ``k`` (the only one, or named)
 
     def admissible(self, assignment: Mapping[str, str], units: Mapping[str, str]) -> bool:
         """Whether mapping placeholders to variables (``assignment``) obeys the unit rules, and uses
@@ -225,9 +226,20 @@ def _entry(raw: Any, k: int, path: Path) -> Mechanism:
         raise CatalogueError(f"{where}: k must be one of {list(K_GRIDS)} (how the second constant {SECOND!r} is searched), "
                              f"but got {kind!r}")
     placeholders = tuple(sorted(s.name for s in shape.free_symbols if kind is None or s.name != SECOND))
-    if kind is not None and (sympy.Symbol(SECOND) not in shape.free_symbols or len(placeholders) != 1):
-        raise CatalogueError(f"{where}: a template with k: {kind} must hold the constant {SECOND!r} and exactly one "
+    k_of = raw.get("k_of")
+    if kind is not None and (sympy.Symbol(SECOND) not in shape.free_symbols or not placeholders):
+        raise CatalogueError(f"{where}: a template with k: {kind} must hold the constant {SECOND!r} and a "
                              f"placeholder, but got {raw['template']!r}")
+    if kind is None and k_of is not None:
+        raise CatalogueError(f"{where}: k_of names the placeholder that sizes the grid of k, so it needs k, but the "
+                             "entry has no k")
+    if kind is not None:
+        if k_of is None and len(placeholders) != 1:
+            raise CatalogueError(f"{where}: a template with k: {kind} and several placeholders {list(placeholders)} "
+                                 f"needs k_of: the placeholder whose samples set the grid of {SECOND!r}")
+        k_of = placeholders[0] if k_of is None else k_of
+        if k_of not in placeholders:
+            raise CatalogueError(f"{where}: k_of must be one of the placeholders {list(placeholders)}, but got {k_of!r}")
 
     units = raw.get("units") or {}
     if not isinstance(units, dict) or not all(isinstance(v, str) for v in units.values()):
@@ -255,6 +267,7 @@ def _entry(raw: Any, k: int, path: Path) -> Mechanism:
         complexity=int(sympy.count_ops(template)),
         text=" ".join(raw["template"].split()),
         k=kind,
+        k_of=k_of,
     )
 
 
@@ -274,13 +287,17 @@ def k_grid(kind: str, values: np.ndarray) -> np.ndarray:
     return np.round(np.arange(0.25, 4.0 + 1e-9, 0.05), 10)
 
 
-def fit_with_k(m: Mechanism, f: Any, column: np.ndarray, y: np.ndarray) -> tuple[float, float | None, float, np.ndarray] | None:
+def fit_with_k(m: Mechanism, f: Any, columns: list[np.ndarray], y: np.ndarray) -> tuple[float, float | None, float, np.ndarray] | None:
     """``c`` (least squares) and, for a template with a second constant, the ``k`` of its grid that
     fits ``y`` best: ``(c, k, R², form values)``; None where the form is zero or not finite.
-    ``f(u[, k])`` evaluates the template's shape on the variable's samples ``column (n,)``."""
+    ``f(*columns[, k])`` evaluates the template's shape on the samples ``(n,)`` of the variables
+    assigned to its placeholders (in :attr:`Mechanism.placeholders` order); the grid of ``k`` comes
+    from the column of :attr:`Mechanism.k_of`."""
+    column = columns[m.placeholders.index(m.k_of)] if m.k else columns[0]
+
     def at(k: float | None) -> tuple[float, float | None, float, np.ndarray] | None:
         with np.errstate(all="ignore"):
-            t = np.array(np.broadcast_to(np.asarray(f(column) if k is None else f(column, k), dtype=float), y.shape))
+            t = np.array(np.broadcast_to(np.asarray(f(*columns) if k is None else f(*columns, k), dtype=float), y.shape))
         tt = float(t @ t)
         if not np.isfinite(t).all() or tt == 0.0:
             return None
@@ -382,7 +399,7 @@ def classify(
     *,
     catalogue_path: str | Path | None = None,
     top: int = 3,
-    tie_tol: float = 1e-3,
+    tie_tol: float = 1e-4,
 ) -> list[MechanismMatch]:
     """Rank the catalogue's mechanisms by how well each reproduces ``expr`` on ``samples``.
 
@@ -430,8 +447,8 @@ def classify(
             assignment = dict(zip(m.placeholders, combo))
             if not m.admissible(assignment, units):
                 continue
-            if m.k:  # one placeholder and a second constant searched on its grid
-                fitted = fit_with_k(m, f, cols[combo[0]], y)
+            if m.k:  # a second constant searched on its grid
+                fitted = fit_with_k(m, f, [cols[v] for v in combo], y)
                 if fitted is not None:
                     found.append((m, assignment, fitted[0], fitted[2], fitted[1]))
                 continue

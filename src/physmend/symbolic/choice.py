@@ -50,7 +50,8 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
 
     out, seen = [], set()
     for m in load_catalogue():
-        f = (sp.lambdify([sp.Symbol("_u"), sp.Symbol(SECOND)], m.shape.xreplace({sp.Symbol(m.placeholders[0]): sp.Symbol("_u")}),
+        dummies = [sp.Symbol(f"_p{i}") for i in range(len(m.placeholders))]
+        f = (sp.lambdify(dummies + [sp.Symbol(SECOND)], m.shape.xreplace({sp.Symbol(p): d for p, d in zip(m.placeholders, dummies)}),
                          modules="numpy") if m.k else None)  # once per form, not per assignment
         for combo in itertools.permutations(inputs, len(m.placeholders)):
             assignment = dict(zip(m.placeholders, combo))
@@ -60,7 +61,7 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
                 continue  # a second fitted constant on two values: any two per-experiment sizes
             shape = m.shape.xreplace({sp.Symbol(ph): sp.Symbol(v) for ph, v in assignment.items()})
             if m.k:  # the second constant (threshold, scale, exponent): the best of its grid, then fixed
-                fitted = fit_with_k(m, f, np.asarray(columns[combo[0]], dtype=float), y)
+                fitted = fit_with_k(m, f, [np.asarray(columns[v], dtype=float) for v in combo], y)
                 if fitted is None:
                     continue
                 shape = shape.xreplace({sp.Symbol(SECOND): sp.Float(fitted[1])})

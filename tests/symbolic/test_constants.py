@@ -30,3 +30,21 @@ def test_distinct_constants_stay_distinct() -> None:
     assert sorted(consts.values()) == [-1.3, 0.1, 2.5]
     assert sp.simplify(named.subs({sp.Symbol(k): v for k, v in consts.items()}) - expr) == 0
     assert n_constants(sp.Integer(0) + T) == 1  # at least one (the scale)
+
+
+def test_a_formula_whose_constants_trade_off_is_multiplied_out() -> None:
+    """``c1·i·w·(c3·i + c4) + c2`` (a regression's shape) has three constants the data can pin down,
+    not four: it is proposed as ``a·i²·w + b·i·w + c``; a form that multiplying out would not simplify,
+    or would grow past half its size again, stays as found."""
+    import sympy as sp
+
+    from physmend.stages.symbolic import identifiable, name_constants
+
+    i, w, T, Tr = sp.symbols("field.i shaft.w T Tr")
+    found = -33.91 * i * w * (0.002406 * i + 0.00126) - 0.2486
+    expr, consts = name_constants(identifiable(found))
+    assert len(consts) == 3 and sp.expand(expr.subs(consts) - found) == 0
+    radiation = -5.1e-8 * T**4 + 5.1e-8 * Tr**4
+    assert identifiable(radiation) == radiation
+    grows = 0.3 * (i + 2.0 * w) ** 6
+    assert identifiable(grows) == grows

@@ -71,6 +71,22 @@ def equation_unit(model: Any, state: str, time_unit: str = "s") -> str:
     return labels[0] if labels else ""
 
 
+def identifiable(expr: sp.Expr) -> sp.Expr:
+    """``expr`` multiplied out where that leaves fewer fitted constants without growing it by more
+    than half: a regression's ``c1·x·(c2·x + c3)`` is ``a·x² + b·x``, whose two constants the data
+    can pin down (``c1`` and ``c2``, ``c3`` trade off against each other); otherwise ``expr``."""
+    from physmend.modeling.evaluate import n_constants
+    from physmend.symbolic.choice import tree_size
+
+    try:
+        expanded = sp.expand(expr)
+    except Exception:  # noqa: BLE001 - a form sympy cannot multiply out stays as it is
+        return expr
+    if n_constants(expanded) < n_constants(expr) and tree_size(expanded) <= 1.5 * tree_size(expr):
+        return expanded
+    return expr
+
+
 def name_constants(expr: sp.Expr, prefix: str = "c") -> tuple[sp.Expr, dict[str, float]]:
     """Replace the floating-point constants of ``expr`` by symbols ``c1, c2 …``; returns both.
 
@@ -205,7 +221,7 @@ def _correction(problem: Any, state: str, front: Any, idx: int, why: str, column
     if canonical is not None:
         why += (f" Its form matches the catalogue's {canonical[1]!r} with R² {canonical[2]:.4f} ≥ "
                 f"{float(sc.canonical_r2)} on the training samples, so that clean form is used.")
-    expr, consts = name_constants(canonical[0] if canonical is not None else raw)
+    expr, consts = name_constants(canonical[0] if canonical is not None else identifiable(raw))
     chosen[state] = {"index": idx, "why": why, "expr": str(raw), "unit": unit,
                      "canonical": str(canonical[0]) if canonical is not None else None}
     return Correction(state=state, term=sp.sstr(expr), constants=consts, unit=unit)

@@ -1,4 +1,4 @@
-"""The layout rule (README "Layout"): no module over 500 lines, no import circle between modules,
+"""The layout rule (docs/layout.md): no module over 500 lines, no import circle between modules,
 and imports only downward through the layers of subpackages."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Scale-out as README "Many machines" describes it: a real PostgreSQL (this machine's ``initdb`` /
+"""Scale-out as docs/many-machines.md describes it: a real PostgreSQL (this machine's ``initdb`` /
 ``pg_ctl``, on a free loopback port), a real ``mlflow server`` process on it with proxied
 artifacts, Optuna on the same PostgreSQL, and two ``physmend sweep`` worker processes joining one
 study. Every trial is in Optuna and in MLflow exactly once, and a trial's artifacts come back

@@ -43,14 +43,23 @@ AUTO_OR_LIST = ("symbolic.parameters", "ude.inputs.parameters", "ude.inputs.obse
 #: switches whose alternative is a list of names (checked against the model where it is used)
 SWITCH_OR_LIST = ("ude.inputs.states", "ude.inputs.inputs")
 
+#: the widest hidden layer and the most hidden layers a network may have (``ude.width``, ``ude.depth``),
+#: generous bounds (a sweep's shipped spaces search widths 4-64 and 1-3 layers) that keep any network,
+#: and one read back from a store, under ~150 MB of weights: ``hybrid.json`` is checked against them
+#: before its network is built (:mod:`physmend.ude.stored_spec`)
+MAX_UNITS = 1024
+MAX_LAYERS = 16
+
 #: ``key: (low, high)``, both inclusive, where the default's kind says too little: counts that must
 #: be at least one, fractions, weights that may be zero
 RANGES: dict[str, tuple[float, float]] = {
     **{key: (1, math.inf) for key in (
         "train.epochs", "train.eval_every", "train.segment_samples", "train.warm_window_samples",
-        "ude.width", "diagnose.n_windows", "diagnose.smooth_samples", "mask.max_k", "mask.retrain_epochs", "sensitivity.top_k",
+        "diagnose.n_windows", "diagnose.smooth_samples", "mask.max_k", "mask.retrain_epochs", "sensitivity.top_k",
         "sensitivity.max_rows", "symbolic.window_samples", "sweep.n_trials", "sweep.group", "sweep.workers",
         "sweep.heartbeat_interval", "sweep.stale_after", "discover.n_trials", "discover.group", "threads")},
+    "ude.width": (1, MAX_UNITS),
+    "ude.depth": (0, MAX_LAYERS),
     "diagnose.window_fraction": (ABOVE_ZERO, 1.0),
     "sensitivity.group_r": (ABOVE_ZERO, 1.0),
     "symbolic.canonical_r2": (ABOVE_ZERO, 1.0),

@@ -89,7 +89,14 @@ def load_source(store: Store, run: Any, current: DictConfig | None, *, with_mode
                 raise TrackingError(f"run {run_id!r}: {exc}") from None
             kept = run.data.tags.get("physmend.kept")
             if kept:
-                hybrid.keep_only(kept.split(","))
+                names = kept.split(",")
+                stray = [n for n in names if n not in hybrid.spec.corrected]
+                if stray:
+                    from physmend.modeling.safe_parse import quoted
+
+                    raise TrackingError(f"run {run_id!r}: its tag physmend.kept names {quoted(stray[0])}, which is not "
+                                        f"a state its network corrects ({', '.join(hybrid.spec.corrected)[:100]})")
+                hybrid.keep_only(names)
     return Source(run, cfg, problem, hybrid)
 
 

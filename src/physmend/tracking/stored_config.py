@@ -43,7 +43,16 @@ def _first_difference(a: Any, b: Any, prefix: str) -> str | None:
             if found:
                 return found
         return None
-    return None if a == b else f"{prefix}: the run has {a!r}, your configuration {b!r}"
+    return None if a == b else f"{prefix}: the run has {_short(a)}, your configuration {_short(b)}"
+
+
+def _short(value: Any, limit: int = 100) -> str:
+    """``repr(value)`` cut to about ``limit`` characters, its start and end kept (an error never echoes
+    a whole file; the end of a path names its file)."""
+    text = repr(value)
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit * 2 // 3]}…{text[-(limit // 3):]} ({len(text)} characters)"
 
 
 def read_stored_config(path: str | Path, run_id: str, current: DictConfig | None = None) -> DictConfig:
@@ -64,7 +73,7 @@ def read_stored_config(path: str | Path, run_id: str, current: DictConfig | None
     found = _interpolation(raw)
     if found:
         raise TrackingError(
-            f"run {run_id!r}: config.yaml holds an interpolation at {found[0]} ({found[1]!r}); a stored "
+            f"run {run_id!r}: config.yaml holds an interpolation at {found[0][:100]} ({_short(found[1])}); a stored "
             "configuration is data and is never resolved"
         )
     if current is not None:

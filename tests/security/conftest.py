@@ -1,0 +1,86 @@
+"""A finished sweep trial in a real MLflow sqlite store, written in about a second: a sweep run, a
+trial run under it with the user's configuration, the model's fingerprint and a real (untrained)
+hybrid model's ``model/hybrid.json`` and ``model/weights.pt`` — what a sweep leaves, without the
+training. Tests tamper with its artifacts as anyone with write access to a shared store could."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+@dataclass
+class StoredTrial:
+    """The user's project, the opened store and the trial's run ID."""
+
+    project: Path
+    store: Any
+    run_id: str
+
+    def artifact(self, rel: str) -> Path:
+        """The file of the trial's artifact ``rel`` inside the store (sqlite: artifacts on disk)."""
+        folder = Path(self.store.client.get_run(self.run_id).info.artifact_uri.removeprefix("file://"))
+        return folder / rel
+
+    def args(self) -> list[str]:
+        """The user's own options for a stage loading the trial."""
+        return ["--config-dir", str(self.project / "my_conf"), "model=oscillator", "data=oscillator"]
+
+
+@pytest.fixture
+def stored_trial(user_project: Path, monkeypatch: pytest.MonkeyPatch, reset_mlflow: None) -> StoredTrial:
+    """A finished trial of the oscillator (tests/conftest.py's ``user_project``) in ``mlflow.db``."""
+    from omegaconf import OmegaConf
+
+    from physmend.config import compose
+    from physmend.problem import load_problem
+    from physmend.tracking import open_store
+    from physmend.tracking.fingerprint import STRUCTURE_FILE, fingerprint_tags
+    from physmend.tracking.runs import STAGE_TAG
+    from physmend.tracking.selection import PARENT_TAG, TRIAL_NUMBER_TAG, TRIAL_STATE_TAG
+    from physmend.ude.artifacts import artifacts_of
+    from physmend.ude.hybrid import HybridModel, HybridSpec
+
+    monkeypatch.chdir(user_project)
+    cfg = compose(["model=oscillator", "data=oscillator"], user_config_dir=user_project / "my_conf")
+    problem = load_problem(cfg)
+    spec = HybridSpec(corrected=["cart.v"], in_states=["cart.x", "cart.v"], in_observed=[], in_inputs=["motor.F"],
+                      in_parameters=[], widths=[4, 4], activation="tanh", mean=[0.0, 0.0, 0.0], std=[1.0, 1.0, 1.0],
+                      out_scale=[1.0], estimated=["damper.c"], units="equation", rate_scale=[0.5],
+                      state_low=[-1.0, -2.0], state_high=[1.0, 2.0])
+    files = artifacts_of(HybridModel(problem.compiled, spec, problem.dtype), {"val.rmse": 0.1})
+    store = open_store(cfg.tracking)
+    client = store.client
+    sweep = client.create_run(store.experiment_id, tags={STAGE_TAG: "sweep"})
+    tags, structure = fingerprint_tags(cfg)
+    trial = client.create_run(store.experiment_id, tags={
+        STAGE_TAG: "trial", PARENT_TAG: sweep.info.run_id, TRIAL_NUMBER_TAG: "0", TRIAL_STATE_TAG: "COMPLETE", **tags})
+    run_id = trial.info.run_id
+    client.log_text(run_id, OmegaConf.to_yaml(cfg, resolve=True), "config.yaml")
+    client.log_text(run_id, structure or "", STRUCTURE_FILE)
+    for rel, content in files.items():
+        if isinstance(content, bytes):
+            client.log_text(run_id, "", rel)  # the folder, then the bytes in place
+            StoredTrial(user_project, store, run_id).artifact(rel).write_bytes(content)
+        else:
+            client.log_text(run_id, content, rel)
+    client.set_terminated(run_id)
+    client.set_terminated(sweep.info.run_id)
+    return StoredTrial(user_project, store, run_id)
+
+
+@pytest.fixture
+def run_cli(capsys: pytest.CaptureFixture[str]) -> Callable[..., tuple[int, str]]:
+    """``main(argv)`` -> (exit status, stderr)."""
+    from physmend.cli import main
+
+    def call(*argv: str) -> tuple[int, str]:
+        capsys.readouterr()
+        rc = main(list(argv))
+        return rc, capsys.readouterr().err
+
+    return call

@@ -120,46 +120,22 @@ def _compose(args: argparse.Namespace):  # noqa: ANN202
 
 
 def _ui(args: argparse.Namespace) -> int:
-    import subprocess
+    from physmend.tracking.ui import ui
 
-    from physmend.tracking.store import sqlite_path
-
-    cfg = _compose(args)
-    uri = str(cfg.tracking.uri)
-    from physmend.redact import redact
-
-    if uri.lower().startswith(("http://", "https://")):  # a tracking server is its own UI
-        print(f"tracking.uri is an MLflow tracking server: open {redact(_ui_page(uri.rstrip('/'), uri, cfg))} "
-              f"in a browser (experiment {cfg.tracking.experiment!r})")
-        return 0
-    db = sqlite_path(uri)
-    if db is not None:
-        uri = f"sqlite:///{db}"
-    cmd = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri, "--host", args.host,
-           "--port", str(args.port), "--workers", "1"]
-    print("running:", redact(" ".join(cmd)))
-    page = _ui_page(f"http://{args.host}:{args.port}", uri if db is None or db.exists() else None, cfg)
-    print(f"open: {redact(page)}")
-    return subprocess.call(cmd)
+    return ui(_compose(args), host=args.host, port=args.port)
 
 
-def _ui_page(base: str, store_uri: str | None, cfg) -> str:  # noqa: ANN001
-    """The experiment's runs table in the MLflow UI (``workflowType=machine_learning``: MLflow 3's UI
-    otherwise opens its GenAI view, whatever the experiment); ``base`` alone when the experiment
-    cannot be looked up (no store yet, a server that does not answer)."""
-    if store_uri is None:
-        return base
-    try:
-        import os
+#: characters at most of an error message: one that quotes a whole file or cell is cut in the middle
+MAX_MESSAGE = 1000
 
-        os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")
-        os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
-        from mlflow.tracking import MlflowClient
 
-        exp = MlflowClient(tracking_uri=store_uri).get_experiment_by_name(str(cfg.tracking.experiment))
-    except Exception:  # noqa: BLE001 - the URL is a convenience; the UI starts regardless
-        return base
-    return base if exp is None else f"{base}/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning"
+def bounded(message: str, limit: int = MAX_MESSAGE) -> str:
+    """``message`` if at most ``limit`` characters, else its start and end around a note of the cut
+    (every error quotes a little of what it found; this holds where one would quote too much)."""
+    if len(message) <= limit:
+        return message
+    head, tail = message[: limit * 2 // 3], message[-(limit // 4):]
+    return f"{head} … [{len(message) - len(head) - len(tail)} characters cut] … {tail}"
 
 
 #: what a store library says when the disk under it is full or cannot be written (sqlite, via MLflow)
@@ -243,7 +219,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except USER_ERRORS as exc:
         from physmend.redact import redact
 
-        print(redact(f"physmend {args.command}: error: {exc}"), file=sys.stderr)
+        print(bounded(redact(f"physmend {args.command}: error: {exc}")), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"physmend {args.command}: interrupted", file=sys.stderr)

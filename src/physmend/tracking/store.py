@@ -62,21 +62,30 @@ def _folder_lock(folder: Path | None) -> Iterator[None]:
 _DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
 
 
-def _probe_database(uri: str) -> None:
+def _probe_database(uri: str, timeout: int = 10) -> None:
     """Connect once to a database store and list its tables: a corrupt file, a folder that cannot
-    be written or a server that does not answer fails here at once (MLflow itself retries for
-    about 100 s before it gives up)."""
+    be written or a server that does not answer within ``timeout`` seconds fails here at once (MLflow
+    itself retries for about 100 s before it gives up)."""
     scheme = uri.split(":", 1)[0].split("+", 1)[0].lower()
     if scheme not in _DATABASES:
         return
     import sqlalchemy
 
-    connect_args = {"connect_timeout": 10} if scheme in ("postgresql", "mysql") else {}
+    connect_args = {"connect_timeout": int(timeout)} if scheme in ("postgresql", "mysql") else {}
     engine = sqlalchemy.create_engine(uri, connect_args=connect_args)
     try:
         sqlalchemy.inspect(engine).get_table_names()
     finally:
         engine.dispose()
+
+
+def probe_store(uri: str, *, timeout: int = 10) -> None:
+    """Raise :class:`TrackingError` (one line, the URI redacted) when the database store ``uri`` cannot
+    be opened within ``timeout`` seconds; other stores (a server, a folder) are not probed."""
+    try:
+        _probe_database(uri, timeout)
+    except Exception as exc:  # noqa: BLE001 - any failure to open the store is one line naming it
+        raise TrackingError(f"tracking.uri {redact(uri)!r} cannot be opened: {_reason(exc)}") from None
 
 
 def _reason(exc: BaseException) -> str:

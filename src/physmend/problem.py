@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,7 +43,9 @@ def dtype_of(cfg: Any) -> torch.dtype:
 def load_problem(cfg: Any) -> Problem:
     """Build, simplify and compile ``cfg.model``; load and validate ``cfg.data`` against it.
 
-    Reads only: every check on the user's model and data happens here, before any stage writes.
+    Reads only: every check on the user's model and data happens here, before any stage writes —
+    values beyond ``simulate.dtype`` arithmetic and records with more rows than the solver can pass
+    included (:mod:`physmend.data.sanity`).
     """
     from physmend.data import load_experiments
 
@@ -52,8 +55,52 @@ def load_problem(cfg: Any) -> Problem:
     dtype = dtype_of(cfg)
     device = resolve_device(cfg.get("device", "auto"))
     model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}, cfg.model.get("corrections")).simplify()
-    experiments = load_experiments(cfg.data, model)
+    experiments = load_experiments(cfg.data, model, dtype=str(cfg.simulate.dtype))
     from physmend.data.config import time_unit_of
+    from physmend.data.sanity import check_sampling
 
-    return Problem(model=model, compiled=compile_model(model), experiments=experiments, dtype=dtype,
-                   time_unit=time_unit_of(cfg.data), device=device)
+    problem = Problem(model=model, compiled=compile_model(model), experiments=experiments, dtype=dtype,
+                      time_unit=time_unit_of(cfg.data), device=device)
+    check_sampling(experiments, cfg.simulate, time_unit=problem.time_unit, fastest=lambda: _fastest(problem))
+    return problem
+
+
+def _fastest(problem: Problem) -> float:
+    """The fastest time constant of the model as written at the training records' starts."""
+    import dataclasses
+
+    from physmend.data.sanity import record_starts
+
+    return fastest_time_constant(dataclasses.replace(problem, experiments=record_starts(problem.experiments)))
+
+
+def fastest_time_constant(problem: Problem, states: torch.Tensor | None = None, inputs: torch.Tensor | None = None,
+                          params: torch.Tensor | None = None) -> float:
+    """``1 / max |λ|`` of the model's Jacobian at the given points (inf when every λ is 0).
+
+    ``states (P, n)``, ``inputs (P, m)``, ``params (P, k)``; without them, the start states of the
+    training experiments with their inputs at their first time.
+    """
+    from physmend.simulate import make_batch
+
+    model = problem.compiled
+    if states is None:
+        train = [e for e in problem.experiments if e.role == "train"] or list(problem.experiments)
+        batch = make_batch(train, model, problem.dtype)
+        states = batch.u0
+        inputs = batch.inputs.at(batch.t[:1])[0]  # (B, m), m may be 0
+        params = batch.params
+    assert inputs is not None and params is not None
+    n = states.shape[-1]
+    with torch.no_grad():
+        h = 1e-6 * states.abs().clamp_min(1.0)  # (P, n)
+        eye = torch.eye(n, dtype=states.dtype)
+        up = states[None] + eye[:, None, :] * h[None]  # (n, P, n): state i perturbed in block i
+        down = states[None] - eye[:, None, :] * h[None]
+        x = inputs[None].expand(n, *inputs.shape)
+        p = params[None].expand(n, *params.shape)
+        diff = model.rhs(up, x, p) - model.rhs(down, x, p)  # (n, P, n)
+        jac = (diff / (2 * h.T[:, :, None])).permute(1, 2, 0)  # (P, n_out, n_in)
+        jac = torch.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0)
+        rho = float(torch.linalg.eigvals(jac).abs().max()) if jac.numel() else 0.0
+    return 1.0 / rho if rho > 0 and math.isfinite(rho) else math.inf

@@ -12,11 +12,14 @@ import numpy as np
 
 from physmend.data.config import ROLES, DataConfig, ExperimentSpec, parse_data_config
 from physmend.data.errors import DataError
+from physmend.data.sanity import check_magnitude
 from physmend.data.telemetry import (
     Channel,
     file_format,
     numeric_column,
     read_table,
+    row_label,
+    shown_columns,
     time_column,
 )
 
@@ -89,7 +92,7 @@ def experiments_by_role(exps: list[Experiment], role: str) -> list[Experiment]:
     return [e for e in exps if e.role == role]
 
 
-def load_experiments(data_cfg: Any, model: SimplifiedModel) -> list[Experiment]:
+def load_experiments(data_cfg: Any, model: SimplifiedModel, *, dtype: Any = np.float64) -> list[Experiment]:
     """Read and check every experiment of the data config ``data_cfg`` against ``model``.
 
     The config is checked completely before any file is read; files are only read, never
@@ -100,6 +103,8 @@ def load_experiments(data_cfg: Any, model: SimplifiedModel) -> list[Experiment]:
         data_cfg: the data config (``DictConfig`` or mapping; see :mod:`physmend.data.config`).
         model: the simplified model whose outputs, inputs, parameters and states the telemetry
             and config refer to.
+        dtype: the arithmetic the model is simulated in (``simulate.dtype``): every value must be
+            small enough for it (:func:`physmend.data.sanity.check_magnitude`).
 
     Returns:
         The experiments in config order. When no experiment has role ``validation``, every
@@ -112,7 +117,7 @@ def load_experiments(data_cfg: Any, model: SimplifiedModel) -> list[Experiment]:
             f"data config {cfg.name!r}: model {model.name!r} declares no measured outputs, "
             "so telemetry cannot be compared with it"
         )
-    exps = [_load_one(spec, cfg, model) for spec in cfg.experiments]
+    exps = [_load_one(spec, cfg, model, dtype) for spec in cfg.experiments]
     if not cfg.has_validation:
         frac = float(cfg.validation_fraction)
         for e in exps:
@@ -143,7 +148,7 @@ def _display(path: Path, root: Path) -> str:
         return str(path)
 
 
-def _load_one(spec: ExperimentSpec, cfg: DataConfig, model: SimplifiedModel) -> Experiment:
+def _load_one(spec: ExperimentSpec, cfg: DataConfig, model: SimplifiedModel, dtype: Any = np.float64) -> Experiment:
     where = f"experiment {spec.id!r} (file {_display(spec.file, cfg.root)})"
     df = read_table(spec.file, where=f"experiment {spec.id!r}")
     fmt = file_format(spec.file)
@@ -158,7 +163,7 @@ def _load_one(spec: ExperimentSpec, cfg: DataConfig, model: SimplifiedModel) -> 
 
     obs_all = np.empty((len(df), len(outputs)), dtype=np.float64)
     for j, name in enumerate(outputs):
-        obs_all[:, j] = _channel_values(df, cfg, name, "model output", where, fmt)
+        obs_all[:, j] = _channel_values(df, cfg, name, "model output", where, fmt, dtype)
     measured = ~np.isnan(obs_all).all(axis=1)
     rows = np.flatnonzero(measured)
     if rows.size < 2:
@@ -174,7 +179,7 @@ def _load_one(spec: ExperimentSpec, cfg: DataConfig, model: SimplifiedModel) -> 
     channels: dict[str, Channel] = {}
     tol = 1e-9 * max(1.0, abs(t0) + t_end)
     for name in inputs:
-        v = _channel_values(df, cfg, name, "model input", where, fmt)
+        v = _channel_values(df, cfg, name, "model input", where, fmt, dtype)
         ok = ~np.isnan(v)
         ch = Channel(time=t_abs[ok] - t0, values=v[ok])
         first, last = ch.span
@@ -193,6 +198,8 @@ def _load_one(spec: ExperimentSpec, cfg: DataConfig, model: SimplifiedModel) -> 
     params = np.array([float(p.value) for p in model.parameters], dtype=np.float64)
     index = {n: i for i, n in enumerate(model.parameter_names)}
     for key, value in spec.parameters.items():
+        check_magnitude(np.array([float(value)]), where=f"data config {cfg.name!r}, experiment {spec.id!r}",
+                        label=f"parameter {key!r}", row=lambda i: "parameters", dtype=dtype)
         params[index[key]] = value
     return Experiment(
         id=spec.id,
@@ -231,13 +238,13 @@ def _check_columns(
     if missing:
         raise DataError(
             f"{where}: no column for {'; '.join(missing)}. Expected columns {expected}, "
-            f"present columns {present}. If the file names a channel differently, map it in "
+            f"present columns {shown_columns(present)}. If the file names a channel differently, map it in "
             "the data config under `columns:` (model name -> column name)"
         )
 
 
 def _channel_values(
-    df: pd.DataFrame, cfg: DataConfig, name: str, kind: str, where: str, fmt: str
+    df: pd.DataFrame, cfg: DataConfig, name: str, kind: str, where: str, fmt: str, dtype: Any = np.float64
 ) -> np.ndarray:
     col = cfg.column_for(name)
     what = f"{kind} {name!r}"
@@ -247,6 +254,8 @@ def _channel_values(
             f"{where}: column {col!r} ({what}) has no measured value: all {v.size} rows are "
             "empty/NaN; every output and input needs at least one sample"
         )
+    label = f"column {col!r} ({kind})" if col == name else f"column {col!r} ({what})"
+    check_magnitude(v, where=where, label=label, row=lambda i: row_label(i, fmt), dtype=dtype)
     return v
 
 

@@ -19,6 +19,20 @@ CSV_SUFFIXES: tuple[str, ...] = (".csv", ".csv.gz", ".csv.bz2", ".csv.xz", ".csv
 PARQUET_SUFFIXES: tuple[str, ...] = (".parquet", ".pq")
 _NA_TEXT = frozenset({"", "nan", "na", "n/a", "null", "none", "<na>"})
 """Texts read as "not measured" in a text column (pandas already does this for CSV cells)."""
+QUOTE = 60
+"""Characters of a file's text an error quotes at most (a cell or header may be megabytes long)."""
+
+
+def shown(value: object, limit: int = QUOTE) -> str:
+    """``repr(value)`` cut to about ``limit`` characters, saying how long it was."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text)} characters)"
+
+
+def shown_columns(columns: list[str], limit: int = 8) -> str:
+    """The first ``limit`` column names (each cut), and how many there are in all."""
+    head = ", ".join(shown(c, 30) for c in columns[:limit])
+    return f"[{head}]" if len(columns) <= limit else f"[{head}, …] ({len(columns)} columns)"
 
 
 @dataclass
@@ -82,12 +96,12 @@ def read_table(path: Path, *, where: str) -> pd.DataFrame:
         kind = "CSV" if fmt == "csv" else "Parquet"
         raise DataError(
             f"{where}: telemetry file {str(path)!r} cannot be read as {kind}: "
-            f"{type(exc).__name__}: {exc}"
+            f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"
         ) from exc
     df.columns = [str(c) for c in df.columns]
     if len(df) == 0:
         raise DataError(
-            f"{where}: telemetry file {str(path)!r} has no data rows (columns: {list(df.columns)})"
+            f"{where}: telemetry file {str(path)!r} has no data rows (columns: {shown_columns(list(df.columns))})"
         )
     return df.reset_index(drop=True)
 
@@ -122,7 +136,7 @@ def numeric_column(df: pd.DataFrame, column: str, *, where: str, fmt: str, what:
             i = int(bad[0])
             raise DataError(
                 f"{where}: column {column!r} ({what}) must be numeric, but "
-                f"{row_label(i, fmt)} holds {series.iloc[i]!r}"
+                f"{row_label(i, fmt)} holds {shown(series.iloc[i])}"
             )
         values = coerced.to_numpy(dtype=np.float64, na_value=np.nan)
     else:
@@ -143,7 +157,7 @@ def time_column(df: pd.DataFrame, column: str, *, where: str, fmt: str) -> np.nd
     """The time column as ``(n,)`` float64 seconds: numeric, finite, strictly increasing."""
     if column not in df.columns:
         raise DataError(
-            f"{where}: time column {column!r} is missing; columns present: {list(df.columns)} "
+            f"{where}: time column {column!r} is missing; columns present: {shown_columns(list(df.columns))} "
             "(set `time_column:` in the data config if time is named differently)"
         )
     t = numeric_column(df, column, where=where, fmt=fmt, what="time, seconds")

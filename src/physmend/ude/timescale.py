@@ -27,7 +27,7 @@ The rules (``cfg.train`` / ``cfg.symbolic`` keys; a number given instead of ``au
 ===========================  ======================================================================
 
 An explicit time that cannot work (a step or a segment longer than the record) is one clear error.
-Imports: ``physmend.config``, ``physmend.simulate`` and torch.
+Imports: ``physmend.config``, ``physmend.problem`` (the fastest time constant), ``physmend.simulate`` and torch.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from physmend.config import ConfigError
+from physmend.problem import fastest_time_constant
 
 if TYPE_CHECKING:
     from physmend.problem import Problem
@@ -78,38 +79,6 @@ def _train_records(problem: Problem) -> list[tuple[np.ndarray, float]]:
         end = float(e.split_time) if e.split_time is not None else float(t[-1])
         out.append((t[t <= end + 1e-12], end))
     return out
-
-
-def fastest_time_constant(problem: Problem, states: torch.Tensor | None = None, inputs: torch.Tensor | None = None,
-                          params: torch.Tensor | None = None) -> float:
-    """``1 / max |λ|`` of the model's Jacobian at the given points (inf when every λ is 0).
-
-    ``states (P, n)``, ``inputs (P, m)``, ``params (P, k)``; without them, the start states of the
-    training experiments with their inputs at their first time.
-    """
-    from physmend.simulate import make_batch
-
-    model = problem.compiled
-    if states is None:
-        train = [e for e in problem.experiments if e.role == "train"] or list(problem.experiments)
-        batch = make_batch(train, model, problem.dtype)
-        states = batch.u0
-        inputs = batch.inputs.at(batch.t[:1])[0]  # (B, m), m may be 0
-        params = batch.params
-    assert inputs is not None and params is not None
-    n = states.shape[-1]
-    with torch.no_grad():
-        h = 1e-6 * states.abs().clamp_min(1.0)  # (P, n)
-        eye = torch.eye(n, dtype=states.dtype)
-        up = states[None] + eye[:, None, :] * h[None]  # (n, P, n): state i perturbed in block i
-        down = states[None] - eye[:, None, :] * h[None]
-        x = inputs[None].expand(n, *inputs.shape)
-        p = params[None].expand(n, *params.shape)
-        diff = model.rhs(up, x, p) - model.rhs(down, x, p)  # (n, P, n)
-        jac = (diff / (2 * h.T[:, :, None])).permute(1, 2, 0)  # (P, n_out, n_in)
-        jac = torch.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0)
-        rho = float(torch.linalg.eigvals(jac).abs().max()) if jac.numel() else 0.0
-    return 1.0 / rho if rho > 0 and math.isfinite(rho) else math.inf
 
 
 def time_scales(problem: Problem, reference: Any | None = None) -> TimeScales:

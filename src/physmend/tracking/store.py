@@ -120,7 +120,7 @@ def _artifact_location(tracking_cfg: Any, uri: str, db: Path | None, name: str) 
             f"tracking.uri {redact(uri)!r} is a database reached directly: set tracking.artifact_location to a folder "
             "or URI every machine can reach (e.g. s3://bucket/physmend or /shared/mlartifacts), or run an MLflow "
             "tracking server on it (mlflow server --backend-store-uri … --artifacts-destination …) and set "
-            "tracking.uri=http://HOST:PORT (README: Many machines)")
+            "tracking.uri=http://HOST:PORT (docs/many-machines.md)")
     return None
 
 

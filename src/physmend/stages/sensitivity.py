@@ -96,7 +96,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     lines = [f"# physmend sensitivity — source {src_run.data.tags.get('physmend.stage')} run {src_run.info.run_id}", "",
              f"Kept corrections: {', '.join(kept)}. Inputs ranked by mean |∂correction/∂input|·std(input):", ""]
     lines += [f"{i + 1:3d}. {'★' if n in chosen else ' '} {n}  {s:.3f}" for i, (n, s) in enumerate(ranking[:12])]
-    if group_r is not None:
+    if group_r is not None and any(len(g.members) > 1 for g, _ in grouped[:8]):  # else the same list again
         lines += ["", f"Ranked as groups of inputs that move together (|r| >= {float(group_r):g} along the training "
                   "trajectories), by the sensitivity along their common direction:", ""]
         for i, (g, sc) in enumerate(grouped[:8]):

@@ -158,7 +158,12 @@ def test_declared_uncertain_parameter_recalibrated_with_the_term(user_project: P
     problem = corrected_problem(cfg, corrections)
     ref, trouble = simulate_corrected(problem, cfg)
     assert trouble is None
-    assert recalibratable(problem, corrections) == ["damper.c"]
+    assert recalibratable(problem, corrections, cfg) == ["damper.c"]
+    from omegaconf import OmegaConf
+
+    configured = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    configured.data.experiments[0].parameters["damper.c"] = 1.5  # the data config sets it: a configuration
+    assert recalibratable(problem, corrections, configured) == []
     alone, _ = refit(cfg, problem, ref, corrections, 30)
     both, result = refit(cfg, problem, ref, corrections, 30, recalibrate=["damper.c"])
     assert abs(result.constants["damper.c"] - 0.4) < 0.05 and abs(both[0].constants["c1"] + 0.9) < 0.05, result

@@ -380,7 +380,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     recalibrated: dict[str, float] = {}  # declared-uncertain parameter -> value re-fitted with the formulas
     iterations = int(sc.refit_epochs)
     refit_note = "constants as found by the regression (symbolic.refit_epochs=0)"
-    recal = recalibratable(corrected, corrections) if bool(sc.get("recalibrate", True)) else []
+    recal = recalibratable(corrected, corrections, work) if bool(sc.get("recalibrate", True)) else []
     for together in ([recal, []] if recal else [[]]) if iterations > 0 else []:
         fitted, result = refit(work, corrected, ref, corrections, iterations, recalibrate=together)
         values = {constant_parameter_name(corrected.model.owner.get(c.state, ""), c.state, k): v

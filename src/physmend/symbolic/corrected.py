@@ -114,15 +114,19 @@ def refit(problem_cfg: Any, problem: Any, ref: Any, corrections: list, iteration
     return fitted, result
 
 
-def recalibratable(problem: Any, corrections: list) -> list[str]:
+def recalibratable(problem: Any, corrections: list, problem_cfg: Any = None) -> list[str]:
     """The parameters of ``problem``'s model declared uncertain (with bounds), in declaration order,
-    other than the constants of ``corrections`` and other than those the data give a value per
-    experiment (a configuration, not a calibration): the ones a corrected model may re-calibrate
-    (:func:`refit` ``recalibrate``)."""
+    other than the constants of ``corrections`` and other than those the data config sets for some
+    experiment (``problem_cfg.data.experiments[*].parameters``, or a value that differs from the
+    declared one: a configuration, not a calibration, and a value the proposal could not change):
+    the ones a corrected model may re-calibrate (:func:`refit` ``recalibrate``)."""
     from physmend.modeling.corrections import constant_parameter_name
 
     own = {constant_parameter_name("", c.state, k) for c in corrections for k in c.constants}
+    configured: set[str] = set()
+    for e in (problem_cfg.data.get("experiments") or []) if problem_cfg is not None else []:
+        configured |= {str(k) for k in (e.get("parameters") or {})}
     names = problem.compiled.parameter_names
     values = np.array([np.asarray(e.parameters, dtype=float) for e in problem.experiments])  # (B, n_params)
     return [v.name for v in problem.model.parameters if v.uncertain and v.bounds is not None and v.name not in own
-            and np.all(values[:, names.index(v.name)] == values[0, names.index(v.name)])]
+            and v.name not in configured and np.all(values[:, names.index(v.name)] == float(v.value))]

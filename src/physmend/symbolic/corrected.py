@@ -12,16 +12,15 @@ import torch
 from omegaconf import OmegaConf
 
 
-def corrected_problem(problem_cfg: Any, corrections: list, parameters: dict[str, float] | None = None) -> Any:
+def corrected_problem(problem_cfg: Any, corrections: list) -> Any:
     """The problem of ``problem_cfg`` with ``corrections`` attached to their equations (no network);
-    each constant is a model parameter (:func:`physmend.modeling.corrections.constant_parameter_name`);
-    ``parameters``: re-calibrated values of declared-uncertain parameters."""
+    each constant is a model parameter (:func:`physmend.modeling.corrections.constant_parameter_name`)."""
     from physmend.modeling import write_corrections
     from physmend.problem import load_problem
 
     with tempfile.TemporaryDirectory(prefix="physmend-corrected-") as tmp:
         work = OmegaConf.create(OmegaConf.to_container(problem_cfg, resolve=True))
-        work.model.corrections = str(write_corrections(Path(tmp) / "candidate.yaml", corrections, parameters=parameters))
+        work.model.corrections = str(write_corrections(Path(tmp) / "candidate.yaml", corrections))
         return load_problem(work)
 
 

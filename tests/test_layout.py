@@ -13,7 +13,7 @@ PACKAGE = SRC / "physmend"
 MAX_LINES = 500
 # Layers, lowest first: a module may import from its own layer's package and from lower layers.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("redact",),
+    ("exceptions", "redact"),
     ("config", "config_check"),
     ("modeling", "library"),
     ("data",),
@@ -25,6 +25,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("sweep",),
     ("stages",),
     ("errors", "cli", "__init__", "__main__"),
+    ("api",),
 )
 
 

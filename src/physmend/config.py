@@ -22,8 +22,10 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from physmend.exceptions import PhysmendError
 
-class ConfigError(ValueError):
+
+class ConfigError(PhysmendError, ValueError):
     """A configuration could not be composed; the message names the key or group."""
 
 

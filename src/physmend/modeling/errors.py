@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from physmend.exceptions import PhysmendError
 
-class ModelError(ValueError):
+
+class ModelError(PhysmendError, ValueError):
     """A model is malformed or cannot be reduced to an explicit ODE; the message names the equations."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from physmend.exceptions import PhysmendError
 
-class SimulationError(RuntimeError):
+
+class SimulationError(PhysmendError, RuntimeError):
     """Integration failed; the message names the experiment and the time (s)."""

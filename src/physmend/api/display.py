@@ -1,0 +1,58 @@
+"""HTML pieces of a result's notebook view: a heading, equations, tables and inline PNG plots."""
+
+from __future__ import annotations
+
+import base64
+import html
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+#: rows of a table shown in a notebook at most (the DataFrame itself holds them all)
+MAX_ROWS = 20
+
+
+def heading(title: str, run_id: str, note: str = "") -> str:
+    extra = f" — {html.escape(note)}" if note else ""
+    return f"<h4>{html.escape(title)}</h4><p>run <code>{html.escape(run_id)}</code>{extra}</p>"
+
+
+def equations(formulas: Mapping[str, Any], *, prefix: str = "+") -> str:
+    """One line per corrected state: ``d(state)/dt = … + formula`` in LaTeX (MathJax renders ``$$``)."""
+    import sympy as sp
+
+    if not formulas:
+        return "<p>(no formulas)</p>"
+    lines = []
+    for state, expr in formulas.items():
+        tex = sp.latex(expr) if isinstance(expr, sp.Basic) else html.escape(str(expr))
+        lines.append(f"<li>$\\frac{{d\\,\\mathrm{{{_tex_name(state)}}}}}{{dt}} = \\ldots {prefix} {tex}$ "
+                     f"<code>{html.escape(str(expr))}</code></li>")
+    return "<ul>" + "".join(lines) + "</ul>"
+
+
+def _tex_name(name: str) -> str:
+    return name.replace("\\", "").replace("_", "\\_").replace("{", "").replace("}", "")
+
+
+def table(frame: Any, *, caption: str = "", floats: str = "{:.4g}") -> str:
+    """``frame`` (a pandas DataFrame) as an HTML table of at most :data:`MAX_ROWS` rows."""
+    if frame is None or len(frame) == 0:
+        return ""
+    shown = frame.head(MAX_ROWS)
+    more = f"<p>({len(frame) - MAX_ROWS} more rows in the DataFrame)</p>" if len(frame) > MAX_ROWS else ""
+    cap = f"<p><b>{html.escape(caption)}</b></p>" if caption else ""
+    return cap + shown.to_html(index=False, float_format=floats.format, border=0) + more
+
+
+def images(pngs: Iterable[tuple[str, bytes]], *, width: int = 480) -> str:
+    """Inline ``<img>`` tags (PNG as base64 data) with the artifact path as their title."""
+    out = []
+    for name, data in pngs:
+        src = "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+        out.append(f'<img src="{src}" title="{html.escape(name)}" alt="{html.escape(name)}" '
+                   f'style="max-width:{width}px;display:inline-block;margin:2px"/>')
+    return "<div>" + "".join(out) + "</div>" if out else ""
+
+
+def short(value: float) -> str:
+    return f"{value:.4g}"

@@ -24,10 +24,26 @@ __version__ = "0.1.0"
 
 #: public name -> the module that defines it (imported on first use)
 _LAZY = {
-    **{name: "physmend.api" for name in (
-        "discover", "diagnose", "mask", "sensitivity", "propose", "accept", "reject", "export",
-        "Experiment", "Dataset", "Discovery", "Diagnosis", "SweepResult", "MaskResult", "SensitivityResult",
-        "SymbolicResult", "Proposal", "Decision", "ExportResult", "StageResult")},
+    "discover": "physmend.api",
+    "diagnose": "physmend.api",
+    "mask": "physmend.api",
+    "sensitivity": "physmend.api",
+    "propose": "physmend.api",
+    "accept": "physmend.api",
+    "reject": "physmend.api",
+    "export": "physmend.api",
+    "Experiment": "physmend.api",
+    "Dataset": "physmend.api",
+    "Discovery": "physmend.api",
+    "Diagnosis": "physmend.api",
+    "SweepResult": "physmend.api",
+    "MaskResult": "physmend.api",
+    "SensitivityResult": "physmend.api",
+    "SymbolicResult": "physmend.api",
+    "Proposal": "physmend.api",
+    "Decision": "physmend.api",
+    "ExportResult": "physmend.api",
+    "StageResult": "physmend.api",
     "PhysmendError": "physmend.exceptions",
     "Model": "physmend.modeling",
 }

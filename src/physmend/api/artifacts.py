@@ -60,20 +60,27 @@ class RunFiles:
 
 
 def figure_of_png(png: bytes, title: str = "") -> Any:
-    """A matplotlib figure showing the image ``png`` at its own size (100 dpi), axes hidden."""
+    """A matplotlib figure showing the image ``png`` at its own size (100 dpi), axes hidden; in Jupyter it
+    shows itself as that PNG (no pyplot needed)."""
     import io
 
     import matplotlib.image as mpimg
     from matplotlib.figure import Figure
 
+    class StoredFigure(Figure):
+        """A figure read back from a run's PNG artifact."""
+
+        def _repr_png_(self) -> bytes:
+            return png
+
     image = mpimg.imread(io.BytesIO(png), format="png")
     height, width = image.shape[:2]
-    fig = Figure(figsize=(width / 100, height / 100), dpi=100)
+    fig = StoredFigure(figsize=(width / 100, height / 100), dpi=100)
     ax = fig.add_axes((0, 0, 1, 1))
     ax.imshow(image)
     ax.set_axis_off()
     if title:
-        fig.suptitle(title, fontsize=8)
+        fig.text(0.5, 0.99, title, ha="center", va="top", fontsize=7, color="0.4")
     return fig
 
 

@@ -172,7 +172,7 @@ def test_sweep_resume_structure_selection_and_reload(user_project: Path, monkeyp
     assert [p.info.run_id for p in sweep_parents(store)] == [parent_id]
     assert study.user_attrs[sw.PARENT_ATTR] == parent_id
     kids = children(store, parent_id)
-    assert [k.info.run_name for k in kids] == ["trial-0000", "trial-0001", "trial-0002"]
+    assert [k.info.run_name.lstrip("★ ")[:10] for k in kids] == ["trial-0000", "trial-0001", "trial-0002"]
     assert [t.user_attrs[sw.RUN_ID_ATTR] for t in trials] == [k.info.run_id for k in kids]
 
     # tags and contents of parent and children
@@ -509,7 +509,7 @@ def test_grouped_trials_train_as_one_stack_and_each_keeps_its_own_run(user_proje
     assert max(t.datetime_complete for t in trials[:2]) <= starts[2]
     store, _ = open_stores(user_project)
     kids = children(store, study.user_attrs[sw.PARENT_ATTR])
-    assert [k.info.run_name for k in kids] == [f"trial-000{i}" for i in range(5)]
+    assert [k.info.run_name.lstrip("★ ")[:10] for k in kids] == [f"trial-000{i}" for i in range(5)]
     # sweep.group_shapes (default): a group's trials share the first one's width (the small space's
     # only shape key); the sampler proposes the rest freely
     assert sw.shape_keys(sw.load_space("small")) == ["ude.width"]

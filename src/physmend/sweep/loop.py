@@ -18,12 +18,13 @@ from omegaconf import DictConfig, OmegaConf
 from physmend.redact import redact
 from physmend.config import ConfigError
 from physmend.sweep.configs import TrialConfigs
-from physmend.sweep.report import Reporter, _log_result, _say, _show
+from physmend.sweep.report import EpochProgress, Reporter, _log_result, _say, _show
 from physmend.sweep.restart import RESTARTS_ATTR, one_line
 from physmend.sweep.settings import Settings, shape_keys
 from physmend.sweep.space import SearchSpace
 from physmend.sweep.storage import REASON_ATTR, RUN_ID_ATTR, Tally, WORKER_ATTR, _uncounted, tally
 from physmend.sweep.workers import Heartbeat, _worker, is_stale
+from physmend.tracking.marks import RUN_NAME_TAG, trial_name
 
 if TYPE_CHECKING:
     import optuna
@@ -62,6 +63,7 @@ class Sweep:
     bar: Any = None  # the progress bar of the running loop (messages are written above it)
     target: int | None = None  # trials the study has in the end (sweep.n_trials, or the budget's decision)
     budget_line: str = ""  # the budget's decision, for the summary
+    progress: Any = None  # EpochProgress: the bar's "trial 3 epoch 20/120" while a trial trains
 
     @property
     def n_trials(self) -> int:
@@ -99,6 +101,7 @@ class Sweep:
         """Ask, train and tell until the study has ``n_trials`` trials or time runs out."""
         start = time.monotonic()
         self.bar = bar
+        self.progress = EpochProgress(bar, int(OmegaConf.select(self.cfg, "train.epochs", default=0) or 0))
         outcomes: list[Outcome] = []
         while True:
             self.fail_stale_trials(bar)
@@ -209,7 +212,9 @@ class Sweep:
         from physmend.sweep.restart import Attempts, describe
         from physmend.ude.stacked import train_stack
 
-        reporters = [Reporter(trial, None, self.settings.pruned_because) for trial, *_ in members]
+        reporters = [Reporter(trial, None, self.settings.pruned_because, on_epoch=self.progress) for trial, *_ in members]
+        if self.progress is not None:
+            self.progress.start([trial.number for trial, *_ in members])
         attempts = [Attempts(cfg, self.settings.restarts) for _, _, cfg, _ in members]
         results: list[Any] = [None] * len(members)
         todo = list(range(len(members)))
@@ -274,7 +279,7 @@ class Sweep:
             if not math.isfinite(value):
                 raise FloatingPointError(f"the final val.rmse is not finite ({value})")
             _log_result(run_, result, step=reporter.last_epoch + 1, figures=self.settings.figures)
-            run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE"})
+            run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE", RUN_NAME_TAG: trial_name(trial.number, value)})
         return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id, restarts=attempts.restarts)
 
     def _after(self, outcome: Outcome, bar: Any) -> None:
@@ -381,7 +386,9 @@ class Sweep:
         from physmend.tracking import selection as sel
 
         with self._child_run(trial, values, cfg, holder) as run_:
-            reporter = Reporter(trial, run_, self.settings.pruned_because)
+            reporter = Reporter(trial, run_, self.settings.pruned_because, on_epoch=self.progress)
+            if self.progress is not None:
+                self.progress.start([trial.number])
             attempts = Attempts(cfg, self.settings.restarts)
             while True:
                 try:
@@ -401,7 +408,7 @@ class Sweep:
                     self._record_restart(trial, attempts, run_)
                     reporter = reporter.restarted()
             _log_result(run_, result, step=reporter.last_epoch + 1, figures=self.settings.figures)
-            run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE"})
+            run_.set_tags({sel.TRIAL_STATE_TAG: "COMPLETE", RUN_NAME_TAG: trial_name(trial.number, value)})
         return Outcome(trial.number, "COMPLETE", value=value, run_id=run_.run_id, restarts=attempts.restarts)
 
     def _record_restart(self, trial: "optuna.Trial", attempts: Any, run_: Any) -> None:

@@ -46,6 +46,9 @@ def _create_parent(store: "Store", cfg: DictConfig, space: SearchSpace, settings
     for key, value in {"space": tags["physmend.space"], "sampler": settings.sampler, "pruner": settings.pruner,
                        "seed": settings.seed, "study": tags["physmend.study"]}.items():
         store.client.log_param(run_id, key, redact(str(value)))
+    from physmend.tracking.marks import save_view
+
+    save_view(store)  # "Views" in the MLflow UI: the trials ranked by val.rmse
     return run_id
 
 
@@ -94,6 +97,7 @@ def _finish_parent(sweep: Sweep, status: str) -> Tally:
                "trials.failed": counts.failed, "trials.interrupted": counts.uncounted}
     if counts.best_value is not None:
         metrics["best.val.rmse"] = counts.best_value
+        metrics["val.rmse"] = counts.best_value  # the sweep's own, so a val.rmse column ranks sweeps too
         best = next(t for t in trials if t.number == counts.best_number)
         best_run = best.user_attrs.get(RUN_ID_ATTR)
         if best_run:

@@ -8,6 +8,7 @@ import math
 import sys
 import tempfile
 from pathlib import Path
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from physmend.sweep.space import hydra_value
@@ -22,7 +23,7 @@ class Reporter:
     """The ``report`` callback of one trial: per-epoch metrics to MLflow, pruning via Optuna."""
 
     def __init__(self, trial: "optuna.Trial", run_: Any, because: str, *, step_offset: int = 0,
-                 reported: int = -1) -> None:
+                 reported: int = -1, on_epoch: Callable[[int, int], None] | None = None) -> None:
         """``run_`` None: metrics are kept in ``buffered`` (a stacked trial's run is written afterwards);
         ``because``: how the pruner compares (:attr:`Settings.pruned_because`, ends a pruned trial's message).
 
@@ -35,11 +36,13 @@ class Reporter:
         self.last_epoch = step_offset
         self.last_value: float | None = None
         self.buffered: list[tuple[int, dict[str, float]]] = []
+        self.on_epoch = on_epoch  # (trial number, epoch): the progress bar's "trial 3 epoch 12/40"
 
     def restarted(self) -> "Reporter":
         """The reporter of this trial's next attempt (a restart after divergence): its MLflow steps
         follow this attempt's, its buffered metrics are kept."""
-        nxt = Reporter(self.trial, self.run_, self.because, step_offset=self.last_epoch + 1, reported=self.reported)
+        nxt = Reporter(self.trial, self.run_, self.because, step_offset=self.last_epoch + 1, reported=self.reported,
+                       on_epoch=self.on_epoch)
         nxt.last_value, nxt.buffered = self.last_value, self.buffered
         return nxt
 
@@ -47,6 +50,8 @@ class Reporter:
         import optuna
 
         epoch = int(epoch)
+        if self.on_epoch is not None:
+            self.on_epoch(self.trial.number, epoch)
         step = epoch + self.step_offset
         self.last_epoch = max(self.last_epoch, step)
         finite = {k: float(v) for k, v in metrics.items() if k != "epoch" and v is not None and math.isfinite(float(v))}
@@ -102,8 +107,39 @@ def _say(bar: Any, message: str) -> None:
 def _show(bar: Any, counts: Tally) -> None:
     bar.n = min(counts.counted, bar.total) if bar.total else counts.counted
     if counts.best_value is not None:
-        bar.set_postfix_str(f"best val.rmse {counts.best_value:.4g} (trial {counts.best_number})", refresh=False)
+        bar.physmend_best = f"best val.rmse {counts.best_value:.4g} (trial {counts.best_number})"
+        bar.set_postfix_str(bar.physmend_best, refresh=False)
     bar.refresh()
+
+
+class EpochProgress:
+    """The ``on_epoch`` of every :class:`Reporter` of one worker: the bar's postfix says which trials
+    train and their epoch (``trials 5–9 epoch 12/40 · best val.rmse …``), redrawn at most every
+    ``interval`` s (so a log file gets no line per epoch)."""
+
+    def __init__(self, bar: Any, epochs: int, interval: float = 0.5) -> None:
+        self.bar, self.epochs, self.interval = bar, int(epochs), interval
+        self.last = 0.0
+        self.training: dict[int, int] = {}  # trial number -> its latest epoch
+
+    def start(self, numbers: list[int]) -> None:
+        """A trial or a stack of trials begins."""
+        self.training = {n: 0 for n in numbers}
+
+    def __call__(self, number: int, epoch: int) -> None:
+        import time
+
+        self.training[number] = epoch
+        now = time.monotonic()
+        if self.bar is None or getattr(self.bar, "disable", True) or now - self.last < self.interval:
+            return
+        self.last = now
+        numbers = sorted(self.training)
+        who = f"trial {numbers[0]}" if len(numbers) == 1 else f"trials {numbers[0]}–{numbers[-1]}"
+        best = getattr(self.bar, "physmend_best", "")
+        epoch = max(self.training.values())
+        self.bar.set_postfix_str(f"{who} epoch {epoch}" + (f"/{self.epochs}" if epoch <= self.epochs else "")
+                                 + (f" · {best}" if best else ""), refresh=True)
 
 
 
@@ -150,13 +186,17 @@ def summary(sweep: Sweep, counts: Tally) -> str:
         return "\n".join(lines)
     frozen = next(t for t in sweep.study.get_trials(deepcopy=False) if t.number == counts.best_number)
     params = " ".join(f"{k}={hydra_value(v)}" for k, v in frozen.params.items())
-    lines.append(f"  best: trial {counts.best_number}, val.rmse {counts.best_value:.6g}, run {best}")
+    so_far = " so far" if counts.running else ""  # other workers still train: nothing here is final yet
+    lines.append(f"  best{so_far}: trial {counts.best_number}, val.rmse {counts.best_value:.6g}, run {best}")
     lines.append(f"        {params}")
     selected, by = tags.get(sel.SELECTED_TAG), tags.get(sel.SELECTED_BY_TAG)
     if selected == best:
-        lines.append(f"  selected: {selected} (automatic: lowest val.rmse)")
+        lines.append(f"  selected{so_far}: {selected} (automatic: lowest val.rmse)")
     else:
-        lines.append(f"  selected: {selected} (chosen by {by}; kept — `physmend select {best}` takes the best)")
+        lines.append(f"  selected{so_far}: {selected} (chosen by {by}; kept — `physmend select {best}` takes the best)")
+    if counts.running:
+        lines.append(f"  not final: {counts.running} trial(s) still running in other workers; the last worker to "
+                     "finish records the final choice (`physmend runs` shows it)")
     lines += [
         "next:",
         "  physmend runs                  # every trial, the selection marked",

@@ -166,13 +166,18 @@ def record_auto_selection(store: Store, sweep_run_id: str, best_run_id: str) -> 
     store.client.set_tag(best_run_id, MARK_TAG, "true")
     best = store.client.get_run(best_run_id)
     val = best.data.metrics.get("val.rmse")
+    number = best.data.tags.get(TRIAL_NUMBER_TAG, "?")
     store.client.set_tag(sweep_run_id, "mlflow.note.content",
-                         f"Best trial: {best.info.run_name or best_run_id} (run {best_run_id})"
-                         + (f", val.rmse {val:.4g}" if val is not None else "")
-                         + f". Trials are this run's children; the best carries the tag {MARK_TAG}=true.")
+                         f"Best trial: [trial {number}](#/experiments/{store.experiment_id}/runs/{best_run_id}) "
+                         f"(run {best_run_id})" + (f", val.rmse {val:.4g}" if val is not None else "")
+                         + f". Trials are this run's children; the best carries the tag {MARK_TAG}=true and "
+                         "a ★ in its name; this run's own val.rmse is the best's.")
     sweep = store.client.get_run(sweep_run_id)
     tags = sweep.data.tags
     if tags.get(SELECTED_TAG) and tags.get(SELECTED_BY_TAG, AUTO) != AUTO:
+        from physmend.tracking.marks import mark
+
+        mark(store, sweep_run_id, best_run_id, tags[SELECTED_TAG])
         return Selection(sweep_run_id, tags[SELECTED_TAG], tags[SELECTED_BY_TAG], tags.get(SELECTED_AT_TAG, ""), None)
     return _write_selection(store, sweep, best_run_id, by=AUTO)
 
@@ -184,6 +189,10 @@ def _write_selection(store: Store, sweep: Any, run_id: str, *, by: str) -> Selec
     store.client.set_tag(sweep_id, SELECTED_TAG, run_id)
     store.client.set_tag(sweep_id, SELECTED_BY_TAG, by)
     store.client.set_tag(sweep_id, SELECTED_AT_TAG, at)
+    from physmend.tracking.marks import mark
+
+    best = store.client.get_run(sweep_id).data.tags.get(BEST_TAG)
+    mark(store, sweep_id, best, run_id)  # the names the MLflow UI's runs table shows
     return Selection(sweep_id, run_id, by, at, previous)
 
 

@@ -58,6 +58,19 @@ def _folder_lock(folder: Path | None) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
+def quiet_mlflow() -> None:
+    """Keep MLflow's own console lines off physmend's output: with a tracking server MLflow writes
+    "🏃 View run … / 🧪 View experiment …" to stdout at every run's end (two lines per trial;
+    ``MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT`` turns it off, read at each run's end), and its loggers
+    print INFO notices (new tables, new experiments) on stderr. A user's own setting of the variable
+    or of ``MLFLOW_LOGGING_LEVEL`` wins; warnings and errors still show."""
+    import logging
+
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
+    if not os.environ.get("MLFLOW_LOGGING_LEVEL"):
+        logging.getLogger("mlflow").setLevel(logging.WARNING)
+
+
 #: database URI schemes (SQLAlchemy dialects MLflow stores runs in)
 _DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
 
@@ -146,6 +159,7 @@ def open_store(tracking_cfg: Any) -> Store:
     # user's own settings of these win)
     os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "1")
     os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "20")
+    quiet_mlflow()
     try:
         _probe_database(uri)
         mlflow.set_tracking_uri(uri)

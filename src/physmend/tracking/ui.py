@@ -28,7 +28,8 @@ STORE_VARIABLE = "MLFLOW_BACKEND_STORE_URI"
 def server_command(uri: str, host: str, port: int) -> tuple[list[str], dict[str, str]]:
     """The MLflow UI child's argv and environment: the store ``uri`` only in the environment."""
     cmd = [sys.executable, "-m", "mlflow", "ui", "--host", host, "--port", str(port), "--workers", "1"]
-    return cmd, {**os.environ, STORE_VARIABLE: uri}
+    # MLflow 3's job runner (GenAI judges, 7 processes) is nothing physmend uses: off unless the user set it
+    return cmd, {"MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false", **os.environ, STORE_VARIABLE: uri}
 
 
 def ui(cfg: Any, *, host: str, port: int) -> int:
@@ -58,8 +59,9 @@ def ui(cfg: Any, *, host: str, port: int) -> int:
 
 def page(base: str, store_uri: str | None, cfg: Any) -> str:
     """The experiment's runs table in the MLflow UI (``workflowType=machine_learning``: MLflow 3's UI
-    otherwise opens its GenAI view, whatever the experiment); ``base`` alone when the experiment
-    cannot be looked up (no store yet, a server that does not answer)."""
+    otherwise opens its GenAI view, whatever the experiment), in the saved view of the trials ranked
+    by ``val.rmse`` once a sweep wrote it (:mod:`physmend.tracking.marks`); ``base`` alone when the
+    experiment cannot be looked up (no store yet, a server that does not answer)."""
     if store_uri is None:
         return base
     try:
@@ -70,4 +72,10 @@ def page(base: str, store_uri: str | None, cfg: Any) -> str:
         exp = MlflowClient(tracking_uri=store_uri).get_experiment_by_name(str(cfg.tracking.experiment))
     except Exception:  # noqa: BLE001 - the URL is a convenience; the UI starts regardless
         return base
-    return base if exp is None else f"{base}/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning"
+    if exp is None:
+        return base
+    from physmend.tracking.marks import VIEW_TAG, view_address
+
+    if VIEW_TAG in exp.tags:
+        return f"{base}/{view_address(exp.experiment_id)}"
+    return f"{base}/#/experiments/{exp.experiment_id}/runs?workflowType=machine_learning"

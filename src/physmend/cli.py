@@ -15,7 +15,7 @@ STAGES = {
     "propose": ("physmend.stages.propose:run", "the corrected model, validated on held-out experiments, with a report"),
     "accept": ("physmend.stages.decide:accept", "accept a proposal: write its corrections file"),
     "reject": ("physmend.stages.decide:reject", "reject a proposal (decide.reason='...')"),
-    "export": ("physmend.stages.export:run", "write a proposal's corrected model as LaTeX, sympy and a Python module"),
+    "export": ("physmend.stages.export:run", "write a proposal's corrected model: LaTeX, sympy, Python, network, PEtab"),
     "discover": ("physmend.stages.discover:run", "all of the above with default choices, end to end"),
 }
 # what each stage's optional run ID means
@@ -37,6 +37,16 @@ Your own config groups (model/, data/ ...) go in a folder passed with --config-d
 Defaults: MLflow store sqlite:///mlflow.db in the working directory (browse with `physmend ui`).
 """
 
+EXPORT_FORMATS = """Formats (export.format=NAME; all: every one this machine can write), into export.output_dir:
+  latex    NAME.tex                 standalone LaTeX document (pdflatex): corrected equations, the
+                                    found terms marked, constants with units and standard errors
+  sympy    NAME.sympy.json          sympy expressions (srepr text), constants with units
+  python   NAME.py                  plain Python module: rhs(t, x, u, p) for scipy's solve_ivp
+  network  NAME.network.json        the correcting network: architecture (PEtab-SciML layout) and
+           NAME.network.safetensors its weights (safetensors)
+  petab    NAME.petab/              PEtab v1 problem: SBML model and tables (needs python-libsbml)
+"""
+
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -48,7 +58,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="store_true", help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (_, help_text) in STAGES.items():
-        p = sub.add_parser(name, help=help_text, description=help_text, epilog=EPILOG,
+        p = sub.add_parser(name, help=help_text, description=help_text,
+                           epilog=(EXPORT_FORMATS + "\n" if name == "export" else "") + EPILOG,
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         _common(p)
         if name not in ("diagnose", "discover"):
@@ -174,6 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     # MLflow logs every store error with its SQL and stack before raising it; physmend reports the
     # error as one line (tracking.store, disk_trouble) — and the table-creation notices are noise
     logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")  # no "🏃 View run" lines (tracking.store)
     parser = _parser()
     args = parse(parser, argv)
     if args.version:

@@ -30,7 +30,7 @@ CHOICES: dict[str, tuple[str, ...]] = {
     "train.warm_start": ("auto", "none"),
     "train.segment_starts": ("chained", "forced"),
     "ude.units": ("equation", "state"),
-    "export.format": ("all", "latex", "sympy", "python", "petab"),
+    "export.format": ("all", "latex", "sympy", "python", "network", "petab"),
     "simulate.dtype": ("float64", "float32"),
 }
 

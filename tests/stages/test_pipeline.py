@@ -193,8 +193,8 @@ def _exports_round_trip(project: Path, capsys, prop_id: str, after: dict[str, fl
 
     rc, out, err = _run(project, capsys, "export", prop_id, "export.output_dir=exported")
     assert rc == 0, err
-    files = {p.suffixes[-1] if p.suffix != ".json" else ".sympy.json": p for p in (project / "exported").iterdir()}
-    assert set(files) == {".tex", ".py", ".sympy.json", ".petab"}, files
+    files = {"".join(p.suffixes[-2:]) if p.suffix == ".json" else p.suffixes[-1]: p for p in (project / "exported").iterdir()}
+    assert set(files) == {".tex", ".py", ".sympy.json", ".petab", ".network.json", ".safetensors"}, files
     spec = importlib.util.spec_from_file_location("exported_model", files[".py"])
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
@@ -228,13 +228,14 @@ def _exports_round_trip(project: Path, capsys, prop_id: str, after: dict[str, fl
     rmse_sympy = float(np.sqrt(np.mean((simulate(rhs_sympy)[ok] - x_meas[ok]) ** 2)))
     assert rmse_sympy == pytest.approx(rmse, rel=1e-6)
     tex = files[".tex"].read_text()
-    assert r"\begin{align*}" in tex and r"\frac{d\,\mathrm{cart.v}}{dt}" in tex and "cart.v\\_" in tex
+    assert r"\documentclass" in tex and r"\frac{d\,v_{\mathrm{cart}}}{dt}" in tex and r"\texttt{cart.v\_c" in tex
+    assert r"}}_{\text{found term}}" in tex  # the found term marked (tests/modeling/test_export_documents.py)
     # a second export of the same proposal overwrites nothing: one clear line, the files unchanged
     before = {p: p.read_bytes() for p in files.values() if p.is_file()}
     rc, _, err = _run(project, capsys, "export", prop_id, "export.output_dir=exported")
     assert rc == 2 and "never overwrites" in err and {p: p.read_bytes() for p in files.values() if p.is_file()} == before
     rc, _, err = _run(project, capsys, "export", prop_id, "export.format=pdf")
-    assert rc == 2 and "export.format must be one of ['all', 'latex', 'sympy', 'python', 'petab'], but got 'pdf'" in err
+    assert rc == 2 and "export.format must be one of ['all', 'latex', 'sympy', 'python', 'network', 'petab'], but got 'pdf'" in err
     _petab_round_trip(next((project / "exported").glob("*.petab")), after)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import keyword
+import math
 import re
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -20,8 +21,9 @@ from sympy.printing.pycode import pycode
 from physmend.modeling.errors import ModelError
 from physmend.modeling.simplify import SimplifiedModel
 
-#: what ``export.format`` may name, and the file suffix each writes
-FORMATS: dict[str, str] = {"latex": ".tex", "sympy": ".sympy.json", "python": ".py"}
+#: what ``export.format`` may name (besides ``petab``, a folder), and the file suffix each writes;
+#: ``network`` writes ``.network.json`` (architecture) and ``.network.safetensors`` (weights)
+FORMATS: dict[str, str] = {"latex": ".tex", "sympy": ".sympy.json", "python": ".py", "network": ".network.json"}
 SYMPY_FORMAT = "physmend-sympy 1"
 
 
@@ -47,8 +49,9 @@ def _tex(expr: sp.Expr, sm: SimplifiedModel) -> str:
 
 
 def latex_text(sm: SimplifiedModel, corrected: Sequence[str], constants: Mapping[str, float], meta: Mapping[str, Any]) -> str:
-    """A LaTeX fragment: the corrected equations as written (with the correction terms), the
-    re-fitted constants, then every state's explicit derivative (``amsmath``'s ``align*``)."""
+    """A LaTeX fragment (``amsmath``'s ``align*``, names as written): the corrected equations, the
+    re-fitted constants, every state's explicit derivative. ``physmend export`` writes the
+    standalone document of :func:`physmend.modeling.latex.latex_document` instead."""
     lines = [f"% corrected model {sm.name}, exported by physmend from proposal {meta.get('source_run_id', '?')}",
              f"% time in {meta.get('time_unit', 's')}; every variable in the unit the model declares", "",
              "% the corrected equations, as written, with the discovered terms", r"\begin{align*}"]
@@ -75,16 +78,23 @@ def _start(sm: SimplifiedModel) -> dict[str, sp.Expr]:
     return {v.name: (v.start if v.start is not None else sp.Integer(0)) for v in sm.states}
 
 
-def sympy_json(sm: SimplifiedModel, corrected: Sequence[str], meta: Mapping[str, Any]) -> str:
+def sympy_json(sm: SimplifiedModel, corrected: Sequence[str], meta: Mapping[str, Any],
+               constants: Mapping[str, Mapping[str, Any]] | None = None) -> str:
     """JSON with each expression as ``sympy.srepr`` (load one with ``sympy.sympify(text)``):
     ``rhs`` (state -> derivative), ``outputs``, ``start`` (state -> start value), ``equations``
-    (the corrected equations as written: ``lhs``, ``rhs``), and the declared variables."""
+    (the corrected equations as written: ``lhs``, ``rhs``), the declared variables, and
+    ``constants``: each correction's re-fitted constant (parameter name -> ``state``, ``name``,
+    ``value``, ``unit`` — ``""`` where not known — and ``stderr`` where the re-fit gave one)."""
+    constants = dict(constants or {})
     doc = {
         "format": SYMPY_FORMAT,
         **{k: v for k, v in meta.items() if isinstance(v, (str, int, float))},
         "states": [{"name": v.name, "unit": v.unit} for v in sm.states],
         "inputs": [{"name": v.name, "unit": v.unit} for v in sm.inputs],
-        "parameters": [{"name": v.name, "unit": v.unit, "value": v.value} for v in sm.parameters],
+        "parameters": [{"name": v.name, "unit": v.unit or str(constants.get(v.name, {}).get("unit") or ""),
+                        "value": v.value} for v in sm.parameters],
+        "constants": {k: {key: (None if isinstance(val, float) and not math.isfinite(val) else val)  # JSON has no inf
+                          for key, val in info.items()} for k, info in constants.items()},
         "rhs": {n: sp.srepr(sm.rhs[n]) for n in sm.state_names},
         "outputs": {n: sp.srepr(e) for n, e in sm.outputs.items()},
         "start": {n: sp.srepr(e) for n, e in _start(sm).items()},

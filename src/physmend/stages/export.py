@@ -2,10 +2,13 @@
 
 Builds the model the current configuration names (never one from the store), applies the
 proposal's corrections (constants at their re-fitted values) and writes, into
-``export.output_dir``, one file per ``export.format``: LaTeX (``.tex``), sympy expressions
-(``.sympy.json``, ``srepr`` text), a plain Python module (``.py``, a right-hand side for
-``scipy.integrate.solve_ivp``) and a PEtab problem (``.petab/``: SBML model and tables, see
-:mod:`physmend.modeling.petab`). An existing file is never overwritten; the run is not changed.
+``export.output_dir``, one file per ``export.format``: a standalone LaTeX document (``.tex``, the
+found terms marked, constants with units and standard errors), sympy expressions
+(``.sympy.json``, ``srepr`` text, constants with units), a plain Python module (``.py``, a
+right-hand side for ``scipy.integrate.solve_ivp``), the correcting network the formulas came from
+(``.network.json`` architecture + ``.network.safetensors`` weights, :mod:`physmend.ude.network_file`)
+and a PEtab problem (``.petab/``: SBML model and tables, see :mod:`physmend.modeling.petab`). An
+existing file is never overwritten; the run is not changed.
 """
 
 from __future__ import annotations
@@ -31,6 +34,54 @@ def _formats(value: Any) -> list[str]:
     return [*FORMATS, *([] if reason else ["petab"])]
 
 
+def _constants(store: Any, run_: Any, sm: Any, corrections: list[Any], terms: dict[str, Any],
+               values: dict[str, float]) -> dict[str, dict[str, Any]]:
+    """Each correction constant (parameter name ->) ``state``, ``name``, ``value``, ``unit`` (from
+    the term's unit where the constant enters linearly, else ``""``) and, where the symbolic run's
+    re-fit computed one, ``stderr`` (``uncertainty.json`` of the proposal's source run)."""
+    import json
+
+    from physmend.modeling.constant_units import constant_unit
+    from physmend.tracking import SOURCE_TAG, TrackingError, download_artifact
+
+    stderr: dict[str, Any] = {}
+    source = run_.data.tags.get(SOURCE_TAG)
+    if source:
+        try:
+            stderr = json.loads(download_artifact(store, source, "uncertainty.json").read_text())
+        except (TrackingError, ValueError, OSError):  # no re-fit improved the fit: no standard errors
+            stderr = {}
+    units = {v.name: v.unit for v in sm.states + sm.inputs + sm.parameters if v.unit} | dict(sm.units or {})
+    symbols = {v.name: v.symbol for v in sm.parameters}
+    out: dict[str, dict[str, Any]] = {}
+    for c in corrections:
+        for k in c.constants:
+            pname = f"{c.state}_{k}"
+            if pname not in values:
+                continue
+            info: dict[str, Any] = {"state": c.state, "name": k, "value": values[pname],
+                                    "unit": constant_unit(terms[c.state], symbols[pname], c.unit, units)}
+            se = stderr.get(pname, {}).get("stderr") if isinstance(stderr.get(pname), dict) else None
+            if isinstance(se, (int, float)):
+                info["stderr"] = float(se)
+            out[pname] = info
+    return out
+
+
+def _network_of(store: Any, run_: Any, cfg: Any) -> Any:
+    """The trained network the proposal's formulas were fitted to: the model run (trial or mask)
+    its symbolic run names, loaded as the stages load it (kept corrections only)."""
+    from physmend.stages.common import load_source
+    from physmend.tracking import SOURCE_TAG, TrackingError, get_run
+
+    symbolic = get_run(store, run_.data.tags.get(SOURCE_TAG, ""), stage="symbolic")
+    model_run_id = symbolic.data.tags.get("physmend.model_run_id")
+    if not model_run_id:
+        raise TrackingError(f"symbolic run {symbolic.info.run_id!r} names no network run (tag physmend.model_run_id); "
+                            "export.format=network needs one")
+    return load_source(store, get_run(store, model_run_id), cfg).hybrid
+
+
 def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Write the corrected model of proposal ``source_run_id``; returns that run ID."""
     import numpy as np
@@ -38,7 +89,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
 
     from physmend.modeling import read_corrections
     from physmend.modeling.errors import ModelError
-    from physmend.modeling.export import FORMATS, latex_text, module_name, python_module, sympy_json
+    from physmend.modeling.export import FORMATS, module_name, python_module, sympy_json
+    from physmend.modeling.latex import found_terms, latex_document
     from physmend.problem import load_problem
     from physmend.stages.common import merged
     from physmend.tracking import TrackingError, download_artifact, get_run, open_store
@@ -73,7 +125,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     name = str(meta.get("model", sm.name))
     base = module_name(name, run_id)
     targets = {f: out_dir / f"{base}{FORMATS.get(f, '.petab')}" for f in formats}  # petab: a folder of files
-    there = [str(p) for p in targets.values() if p.exists()]
+    there = [str(p) for p in [*targets.values(), out_dir / f"{base}.network.safetensors"] if p.exists()]
     if there:
         raise ModelError(f"export.output_dir: {there[0]} exists; physmend never overwrites a file (move it or "
                          f"choose another export.output_dir)")
@@ -81,6 +133,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     constants = {p.name: float(p.value) for p in sm.parameters
                  if any(p.name.startswith(f"{c.state}_") and p.name[len(c.state) + 1:] in c.constants for c in corrections)}
     info = {"model": name, "source_run_id": run_id, "time_unit": problem.time_unit}
+    terms = found_terms(sm, corrections)
+    const_info = _constants(store, run_, sm, corrections, terms, constants)
     declared = np.array([float(v.value) for v in sm.parameters])
     experiments = {}
     for e in problem.experiments:  # initial states as the simulations take them: the start expressions, then the data's
@@ -104,22 +158,35 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             sigmas[out] = float(np.median(found)) if found else 1.0
         return petab_files(sm, records, estimated, sigmas)
 
-    texts = {"latex": lambda: latex_text(sm, corrected, constants, info),
-             "sympy": lambda: sympy_json(sm, corrected, info),
+    def network() -> dict[str, str | bytes]:
+        from physmend.ude.network_file import network_files
+
+        hybrid = _network_of(store, run_, cfg)
+        units = {v.name: v.unit for v in sm.states + sm.inputs + sm.parameters} | dict(sm.units or {})
+        return network_files(hybrid, units, stem=base, meta=info)
+
+    texts = {"latex": lambda: latex_document(sm, terms, const_info, info),
+             "sympy": lambda: sympy_json(sm, corrected, info, const_info),
              "python": lambda: python_module(sm, experiments, info),
+             "network": network,
              "petab": petab}
     written = {f: texts[f]() for f in formats}  # every text first: a failing writer leaves no file behind
     made: list[Path] = []
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         for f, text in written.items():
-            files = {targets[f]: text} if isinstance(text, str) else {targets[f] / n: t for n, t in text.items()}
-            if not isinstance(text, str):
+            if isinstance(text, str):
+                files = {targets[f]: text}
+            elif f == "network":  # two files beside the others
+                files = {out_dir / n: t for n, t in text.items()}
+            else:
+                files = {targets[f] / n: t for n, t in text.items()}
                 targets[f].mkdir()  # fails if it exists: never overwrite
                 made.append(targets[f])
             for path, body in files.items():
-                with open(path, "x", encoding="utf-8") as fh:  # "x": never overwrite, even in a race
-                    made.append(path)
+                binary = isinstance(body, bytes)
+                with open(path, "xb" if binary else "x", **({} if binary else {"encoding": "utf-8"})) as fh:
+                    made.append(path)  # "x": never overwrite, even in a race
                     fh.write(body)
     except OSError as exc:  # a folder that cannot be made or written: one line, none of this call's files left
         for path in reversed(made):
@@ -127,7 +194,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         raise ModelError(f"export.output_dir: cannot write {exc.filename or out_dir}: {exc.strerror or exc}") from None
     print(f"# physmend export — proposal {run_id}, model {name}: {', '.join(corrected)} corrected")
     for f in formats:
-        print(f"  {f:7s} {targets[f]}")
+        print(f"  {f:7s} {targets[f]}" + (f" + {targets[f].name.replace('.json', '.safetensors')}" if f == "network" else ""))
     if "petab" in formats:
         print(f"PEtab: {targets['petab'] / 'problem.yaml'} (e.g. amici.petab or PEtab.jl; a recorded input is a "
               "piecewise-linear SBML rule per experiment, picked by its condition)")

@@ -275,10 +275,14 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.tracking import open_store, stage_run
 
     problem = load_problem(cfg)
+    from physmend.stages.activity import activity
+
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
-    traj, diverged = simulate_as_written(problem, batch, cfg)
+    with activity(f"diagnose: simulating {len(problem.experiments)} experiments as written"):
+        traj, diverged = simulate_as_written(problem, batch, cfg)
     t = batch.t.cpu().numpy()
-    analysis = analyse(problem, traj, t, cfg)
+    with activity("diagnose: locating the mismatch"):
+        analysis = analyse(problem, traj, t, cfg)
     if diverged:
         analysis["divergence"] = [_json_ready(d) for d in diverged]
     summary = summarise(problem, analysis, cfg)

@@ -76,8 +76,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         local.write_text(Path(corr_path).read_text())
         fixed_cfg.model.corrections = str(local)
         after = load_problem(fixed_cfg)
-    batch, traj0, diverged0 = _simulate(before, base_cfg)
-    batch1, traj1, diverged1 = _simulate(after, base_cfg)
+    from physmend.stages.activity import activity
+
+    with activity(f"propose: simulating the model as written and corrected on {len(before.experiments)} experiments"):
+        batch, traj0, diverged0 = _simulate(before, base_cfg)
+        batch1, traj1, diverged1 = _simulate(after, base_cfg)
     outs = before.model.output_names
     rows = []
     for b, e in enumerate(before.experiments):
@@ -199,5 +202,5 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     where = redact(str(store.client.get_run(run_id).info.artifact_uri))
     print(f"propose run: {run_id}\nreport: {where}/report.html  (and report.md; in the MLflow UI: physmend ui, this run, "
           f"Artifacts)\nnext: physmend accept {run_id}   (or: physmend reject {run_id} decide.reason='…'; "
-          f"physmend export {run_id} for LaTeX, sympy, Python, PEtab)")
+          f"physmend export {run_id} for LaTeX, sympy, Python, the network, PEtab)")
     return run_id

@@ -24,8 +24,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("tracking",),
     ("sweep",),
     ("stages",),
-    ("errors", "cli", "__init__", "__main__"),
     ("api",),
+    ("errors", "cli", "__init__", "__main__"),
 )
 
 

@@ -219,14 +219,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             select(cfg, args.run_id)
             return 0
-        import importlib
+        from physmend.api.functions import run_composed
+        from physmend.api.inputs import Inputs
 
-        module_name, func = STAGES[args.command][0].split(":")
-        stage = getattr(importlib.import_module(module_name), func)
-        if args.command in ("sweep", "discover"):
-            stage(cfg, getattr(args, "run_id", None), overrides=args.overrides, config_dir=args.config_dir)
-        else:
-            stage(cfg, getattr(args, "run_id", None))
+        # the Python API's own call (physmend.api): the stage prints as it goes; its result is read back
+        run_composed(args.command, cfg, getattr(args, "run_id", None),
+                     call=Inputs(tuple(args.overrides), args.config_dir))
         return 0
     except USER_ERRORS as exc:
         from physmend.redact import redact

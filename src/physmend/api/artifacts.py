@@ -16,6 +16,7 @@ def quiet_mlflow() -> None:
     import os
 
     os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")  # no "View run" lines
     logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
 
 

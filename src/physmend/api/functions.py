@@ -16,7 +16,7 @@ import io
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from physmend.api.discovery import Discovery
 from physmend.api.inputs import Inputs, prepare
@@ -32,7 +32,6 @@ from physmend.api.results import (
     SymbolicResult,
 )
 
-R = TypeVar("R", bound=StageResult)
 Source = str | StageResult | None
 
 
@@ -51,11 +50,18 @@ class _Tee(io.TextIOBase):
         for s in self.streams:
             s.flush()
 
+    def isatty(self) -> bool:
+        return bool(getattr(self.streams[0], "isatty", lambda: False)())
+
 
 @contextlib.contextmanager
-def _captured(quiet: bool) -> Iterator[io.StringIO]:
-    """What the stage prints, kept; shown as well unless ``quiet`` (then its progress bars are hidden too)."""
+def _captured(quiet: bool | None) -> Iterator[io.StringIO]:
+    """What the stage prints, kept; shown as well unless ``quiet`` (then its progress bars are hidden
+    too); ``None``: the streams left exactly as they are (the command line), nothing kept."""
     buffer = io.StringIO()
+    if quiet is None:
+        yield buffer
+        return
     out = buffer if quiet else _Tee(sys.stdout, buffer)
     with contextlib.redirect_stdout(out):  # type: ignore[type-var]
         if quiet:
@@ -65,14 +71,70 @@ def _captured(quiet: bool) -> Iterator[io.StringIO]:
             yield buffer
 
 
-def _run(kind: type[R], target: str, source: Source, *, model: Any, data: Any, overrides: Sequence[str] | str,
-         config_dir: str | Path | None, quiet: bool, settings: dict[str, Any], composed: bool = False) -> R:
-    """Compose, run ``target`` (``module:function`` of :mod:`physmend.stages`), read its run as ``kind``."""
+#: command -> (result type, ``module:function`` of :mod:`physmend.stages`, whether it composes trial configs)
+STAGES: dict[str, tuple[type[StageResult], str, bool]] = {
+    "diagnose": (Diagnosis, "physmend.stages.diagnose:run", False),
+    "sweep": (SweepResult, "physmend.stages.sweep:run", True),
+    "mask": (MaskResult, "physmend.stages.mask:run", False),
+    "sensitivity": (SensitivityResult, "physmend.stages.sensitivity:run", False),
+    "symbolic": (SymbolicResult, "physmend.stages.symbolic:run", False),
+    "propose": (Proposal, "physmend.stages.propose:run", False),
+    "accept": (Decision, "physmend.stages.decide:accept", False),
+    "reject": (Decision, "physmend.stages.decide:reject", False),
+    "export": (ExportResult, "physmend.stages.export:run", False),
+    "discover": (Discovery, "physmend.stages.discover:run", True),
+}
+
+
+def run_composed(command: str, cfg: Any, source_id: str | None, *, call: Inputs,
+                 quiet: bool | None = None) -> StageResult:
+    """Run stage ``command`` on the composed ``cfg`` (from ``call``'s overrides and config directory) and
+    read its run back: what the command line runs after parsing and composing. ``quiet``: True keeps
+    what the stage prints (``printed``) and shows nothing, False shows and keeps it, None (the command
+    line) leaves stdout and stderr as they are."""
     import importlib
 
-    from physmend.config import compose
-    from physmend.tracking import open_store
     from physmend.api.artifacts import RunFiles, quiet_mlflow
+    from physmend.tracking import open_store
+
+    quiet_mlflow()
+    kind, target, composed = STAGES[command]
+    module_name, func = target.split(":")
+    stage = getattr(importlib.import_module(module_name), func)
+    out_dir = Path(str(cfg.export.output_dir)).expanduser() if command == "export" else None
+    before = set(out_dir.iterdir()) if out_dir is not None and out_dir.is_dir() else set()
+    with _captured(quiet) as printed:
+        if composed:  # sweep and discover compose each trial's config from the overrides, as the CLI does
+            run_id = stage(cfg, source_id, overrides=list(call.overrides), config_dir=call.config_dir)
+        else:
+            run_id = stage(cfg, source_id)
+    files = RunFiles(open_store(cfg.tracking), run_id)
+    if out_dir is not None:
+        return _exported(files, out_dir, before, printed=printed.getvalue(), call=call)
+    return kind.read(files, printed=printed.getvalue(), call=call)
+
+
+def _exported(files: Any, out_dir: Path, before: set[Path], **common: Any) -> ExportResult:
+    """What ``export`` wrote into ``out_dir`` (the entries not there ``before``), by format."""
+    from physmend.modeling.export import FORMATS
+
+    written = sorted(set(out_dir.iterdir()) - before) if out_dir.is_dir() else []
+    paths: dict[str, str] = {}
+    for path in written:
+        if path.is_dir():
+            paths.setdefault("petab", str(path.resolve()))
+            continue
+        fmt = next((f for f, s in sorted(FORMATS.items(), key=lambda kv: -len(kv[1])) if path.name.endswith(s)), None)
+        if fmt is not None:
+            paths.setdefault(fmt, str(path.resolve()))
+    return ExportResult(files.run_id, files=files, paths=paths, written=tuple(str(p.resolve()) for p in written),
+                        **common)
+
+
+def _run(command: str, source: Source, *, model: Any, data: Any, overrides: Sequence[str] | str,
+         config_dir: str | Path | None, quiet: bool, settings: dict[str, Any]) -> Any:
+    """Prepare the inputs, compose as the command line does, run stage ``command``, read its run."""
+    from physmend.config import compose
 
     base = source.call if isinstance(source, StageResult) else None
     source_id = source.run_id if isinstance(source, StageResult) else source
@@ -83,21 +145,12 @@ def _run(kind: type[R], target: str, source: Source, *, model: Any, data: Any, o
     inputs = prepare(model, data, settings=settings, overrides=overrides, config_dir=config_dir, base=base)
     fresh = inputs.workspace is not None and (base is None or inputs.workspace is not base.workspace)
     try:
-        quiet_mlflow()
         cfg = compose(list(inputs.overrides), user_config_dir=inputs.config_dir)
-        module_name, func = target.split(":")
-        stage = getattr(importlib.import_module(module_name), func)
-        with _captured(quiet) as printed:
-            if composed:  # sweep and discover compose each trial's config from the overrides, as the CLI does
-                run_id = stage(cfg, source_id, overrides=list(inputs.overrides), config_dir=inputs.config_dir)
-            else:
-                run_id = stage(cfg, source_id)
-        store = open_store(cfg.tracking)
+        return run_composed(command, cfg, source_id, call=inputs, quiet=quiet)
     except BaseException:
         if fresh:
             inputs.workspace.remove()  # type: ignore[union-attr]
         raise
-    return kind.read(RunFiles(store, run_id), printed=printed.getvalue(), call=inputs)
 
 
 def discover(model: Any = None, data: Any = None, *, overrides: Sequence[str] | str = (),
@@ -116,8 +169,8 @@ def discover(model: Any = None, data: Any = None, *, overrides: Sequence[str] | 
         d.formulas      # {'reactor.A': -0.0202*reactor.A*reactor.B, ...}
         physmend.accept(d)
     """
-    return _run(Discovery, "physmend.stages.discover:run", None, model=model, data=data, overrides=overrides,
-                config_dir=config_dir, quiet=quiet, settings=settings, composed=True)
+    return _run("discover", None, model=model, data=data, overrides=overrides,
+                config_dir=config_dir, quiet=quiet, settings=settings)
 
 
 def diagnose(model: Any = None, data: Any = None, *, overrides: Sequence[str] | str = (),
@@ -138,7 +191,7 @@ def diagnose(model: Any = None, data: Any = None, *, overrides: Sequence[str] | 
     Raises:
         PhysmendError: bad input (unknown setting, wrong type, bad data or model); nothing is written.
     """
-    return _run(Diagnosis, "physmend.stages.diagnose:run", None, model=model, data=data, overrides=overrides,
+    return _run("diagnose", None, model=model, data=data, overrides=overrides,
                 config_dir=config_dir, quiet=quiet, settings=settings)
 
 
@@ -149,8 +202,8 @@ def sweep(model: Any = None, data: Any = None, *, source: Source = None, overrid
     ``source``: an optional run (ID or result, e.g. a :class:`Diagnosis`) the sweep builds on; given a
     result, its model, data and settings are used unless given here. Other arguments: :func:`diagnose`.
     """
-    return _run(SweepResult, "physmend.stages.sweep:run", source, model=model, data=data, overrides=overrides,
-                config_dir=config_dir, quiet=quiet, settings=settings, composed=True)
+    return _run("sweep", source, model=model, data=data, overrides=overrides,
+                config_dir=config_dir, quiet=quiet, settings=settings)
 
 
 def mask(run: Source = None, *, model: Any = None, data: Any = None, overrides: Sequence[str] | str = (),
@@ -161,7 +214,7 @@ def mask(run: Source = None, *, model: Any = None, data: Any = None, overrides: 
     """
     if isinstance(run, SweepResult):
         run = _continuing(run, run.selected_run_id)
-    return _run(MaskResult, "physmend.stages.mask:run", run, model=model, data=data, overrides=overrides,
+    return _run("mask", run, model=model, data=data, overrides=overrides,
                 config_dir=config_dir, quiet=quiet, settings=settings)
 
 
@@ -169,7 +222,7 @@ def sensitivity(run: Source = None, *, model: Any = None, data: Any = None, over
                 config_dir: str | Path | None = None, quiet: bool = True, **settings: Any) -> SensitivityResult:
     """Which inputs the kept corrections depend on (``physmend sensitivity [RUN_ID]``); ``run``: a mask
     run (ID or :class:`MaskResult`), None: the latest."""
-    return _run(SensitivityResult, "physmend.stages.sensitivity:run", run, model=model, data=data,
+    return _run("sensitivity", run, model=model, data=data,
                 overrides=overrides, config_dir=config_dir, quiet=quiet, settings=settings)
 
 
@@ -177,7 +230,7 @@ def symbolic(run: Source = None, *, model: Any = None, data: Any = None, overrid
              config_dir: str | Path | None = None, quiet: bool = True, **settings: Any) -> SymbolicResult:
     """Symbolic regression: the network becomes formulas (``physmend symbolic [RUN_ID]``); ``run``: a
     sensitivity run (ID or :class:`SensitivityResult`), None: the latest."""
-    return _run(SymbolicResult, "physmend.stages.symbolic:run", run, model=model, data=data, overrides=overrides,
+    return _run("symbolic", run, model=model, data=data, overrides=overrides,
                 config_dir=config_dir, quiet=quiet, settings=settings)
 
 
@@ -185,7 +238,7 @@ def propose(run: Source = None, *, model: Any = None, data: Any = None, override
             config_dir: str | Path | None = None, quiet: bool = True, **settings: Any) -> Proposal:
     """The corrected model, validated on held-out experiments (``physmend propose [RUN_ID]``); ``run``:
     a symbolic run (ID or :class:`SymbolicResult`), None: the latest."""
-    return _run(Proposal, "physmend.stages.propose:run", run, model=model, data=data, overrides=overrides,
+    return _run("propose", run, model=model, data=data, overrides=overrides,
                 config_dir=config_dir, quiet=quiet, settings=settings)
 
 
@@ -196,7 +249,7 @@ def accept(run: str | StageResult, *, model: Any = None, data: Any = None, overr
     ``run``: the proposal's run ID, a :class:`Proposal` or a :class:`Discovery` (whose model, data and
     settings are used unless given here); other arguments as :func:`diagnose`.
     """
-    return _run(Decision, "physmend.stages.decide:accept", _required(run, "accept"), model=model, data=data,
+    return _run("accept", _required(run, "accept"), model=model, data=data,
                 overrides=overrides, config_dir=config_dir, quiet=quiet, settings=settings)
 
 
@@ -206,30 +259,17 @@ def reject(run: str | StageResult, *, reason: str | None = None, model: Any = No
     """Reject a proposal, with an optional ``reason`` (``physmend reject RUN_ID decide.reason=…``)."""
     if reason is not None:
         settings["decide.reason"] = reason
-    return _run(Decision, "physmend.stages.decide:reject", _required(run, "reject"), model=model, data=data,
+    return _run("reject", _required(run, "reject"), model=model, data=data,
                 overrides=overrides, config_dir=config_dir, quiet=quiet, settings=settings)
 
 
 def export(run: str | StageResult, *, model: Any = None, data: Any = None, overrides: Sequence[str] | str = (),
            config_dir: str | Path | None = None, quiet: bool = True, **settings: Any) -> ExportResult:
-    """Write a proposal's corrected model as LaTeX, sympy, a Python module and PEtab (``physmend export
-    RUN_ID``; ``export.format``, ``export.output_dir``); the result maps each format to its path."""
-    from physmend.config import compose
-    from physmend.modeling.export import FORMATS
-
-    run = _required(run, "export")
-    base = run.call if isinstance(run, StageResult) else Inputs()
-    probe = prepare(settings=dict(settings), overrides=overrides, config_dir=config_dir, base=base)  # no files
-    out_dir = Path(str(compose(list(probe.overrides), user_config_dir=probe.config_dir).export.output_dir)).expanduser()
-    before = set(out_dir.iterdir()) if out_dir.is_dir() else set()
-    done = _run(ExportResult, "physmend.stages.export:run", run, model=model, data=data, overrides=overrides,
+    """Write a proposal's corrected model as files (``physmend export RUN_ID``; ``export.format``,
+    ``export.output_dir``): LaTeX, sympy, a Python module … The result's ``paths`` maps each format to
+    its file (PEtab: its folder), ``written`` lists every file and folder written."""
+    return _run("export", _required(run, "export"), model=model, data=data, overrides=overrides,
                 config_dir=config_dir, quiet=quiet, settings=settings)
-    suffixes = {v: k for k, v in FORMATS.items()}
-    paths: dict[str, str] = {}
-    for path in sorted(set(out_dir.iterdir()) - before if out_dir.is_dir() else ()):
-        fmt = "petab" if path.is_dir() else next((f for s, f in suffixes.items() if path.name.endswith(s)), path.suffix)
-        paths[fmt] = str(path.resolve())
-    return ExportResult(done.run_id, printed=done.printed, files=done.files, call=done.call, paths=paths)
 
 
 def _required(run: Any, command: str) -> Any:

@@ -297,9 +297,11 @@ class Decision(StageResult):
 
 @dataclass(frozen=True, repr=False)
 class ExportResult(StageResult):
-    """The files ``export`` wrote: format (``latex``, ``sympy``, ``python``, ``petab``) -> path."""
+    """The files ``export`` wrote: ``paths``, format (``latex``, ``sympy``, ``python``, ``petab`` …) -> its
+    file or folder; ``written``, every file and folder it wrote (absolute paths)."""
 
     paths: Mapping[str, str] = field(default_factory=dict)
+    written: tuple[str, ...] = field(default=(), repr=False)
 
     title: ClassVar[str] = "physmend export"
 

@@ -113,15 +113,24 @@ def test_runs_and_select(user_project: Path, monkeypatch: pytest.MonkeyPatch, ca
     with pytest.raises(TrackingError, match="the trial FAIL"):
         load_trial(store, failed["run_id"])
 
-    # a person's choice: three tags on the sweep run, nothing else
+    # a person's choice: three tags on the sweep run, and the names the MLflow UI shows (the chosen
+    # trial marked ▶, the best keeps its ★), nothing else
     assert main(["select", other["run_id"], *conf]) == 0
     out = capsys.readouterr().out
     assert other["run_id"] in out and f"was {best['run_id']}" in out
     after = snapshot(client)
+    names = {"mlflow.runName", "physmend.marked"}
+
+    def unnamed(runs: dict[str, Any]) -> dict[str, Any]:
+        return {r: (st, {k: v for k, v in tags.items() if k not in names}, pa, me) for r, (st, tags, pa, me) in runs.items()}
+
     parent_before, parent_after = before.pop(sw["run_id"]), after.pop(sw["run_id"])
-    assert after == before
+    assert unnamed(after) == unnamed(before)
+    assert after[other["run_id"]][1]["mlflow.runName"].startswith("▶ trial-") and "(selected)" in after[other["run_id"]][1]["mlflow.runName"]
+    assert after[best["run_id"]][1]["mlflow.runName"].startswith("★ trial-") and after[best["run_id"]][1]["mlflow.runName"].endswith("(best)")
     changed = {k for k in parent_after[1] if parent_after[1][k] != parent_before[1].get(k)}
-    assert changed == {"physmend.selected_run_id", "physmend.selected_by", "physmend.selected_at"}
+    assert changed == {"physmend.selected_run_id", "physmend.selected_by", "physmend.selected_at", "mlflow.runName"}
+    assert "▶ trial-" in parent_after[1]["mlflow.runName"] and parent_after[1]["mlflow.runName"].startswith("★ ")
     tags = parent_after[1]
     assert tags["physmend.selected_run_id"] == other["run_id"] and tags["physmend.best_run_id"] == best["run_id"]
     assert tags["physmend.selected_by"] == getpass.getuser()

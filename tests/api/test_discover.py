@@ -1,5 +1,6 @@
 """``physmend.discover(...)`` from a plain Python script finds the formula ``physmend discover`` prints for
-the same settings and seed (both run at once, each in its own folder and store; real training)."""
+the same settings and seed (both run at once, each in its own folder and store; real training); each
+side then continues from the other's runs."""
 
 from __future__ import annotations
 
@@ -32,7 +33,8 @@ SCRIPT = textwrap.dedent(
 
 
 @pytest.mark.slow
-def test_discover_from_a_script_finds_the_formula_the_command_line_prints(tmp_path: Path) -> None:
+def test_discover_from_a_script_finds_the_formula_the_command_line_prints(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str], reset_mlflow: None) -> None:
     (tmp_path / "py").mkdir()
     (tmp_path / "cli").mkdir()
     (tmp_path / "py" / "script.py").write_text(SCRIPT)
@@ -67,3 +69,26 @@ def test_discover_from_a_script_finds_the_formula_the_command_line_prints(tmp_pa
     assert theirs.symbolic.terms.to_dict("records") == found["terms"]
     assert set(theirs.run_ids) == set(found["run_ids"]) == {"diagnosis", "sweep", "mask", "sensitivity", "symbolic",
                                                               "proposal"}
+
+    # the runs are the same kind either way: each side continues from the other's run IDs
+    import physmend
+    from physmend.cli import main
+
+    monkeypatch.chdir(tmp_path / "py")
+    capsys.readouterr()
+    assert main(["runs", "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert {r["run_id"] for r in listed["stage_runs"]} >= {v for k, v in found["run_ids"].items() if k != "sweep"}
+    assert found["run_ids"]["sweep"] in {s["run_id"] for s in listed["sweeps"]}
+    assert main(["accept", found["run_ids"]["proposal"], "model=cstr", "data=cstr"]) == 0
+    assert list((tmp_path / "py" / "corrections").glob("cstr-*.yaml"))
+    # from Python on the command line's store: its runs continue from Python as from the command line
+    on_cli = {**SETTINGS, "tracking.uri": f"sqlite:///{tmp_path / 'cli' / 'mlflow.db'}"}
+    masked = physmend.mask(theirs.sweep.selected_run_id, model="cstr", data="cstr", **on_cli)
+    assert masked.kept == theirs.mask.kept and masked.ranking.equals(theirs.mask.ranking)
+    assert physmend.sensitivity(masked).inputs == theirs.sensitivity.inputs  # a result hands on its inputs
+    proposal = physmend.propose(theirs.symbolic.run_id, model="cstr", data="cstr", **on_cli)
+    assert {k: str(v) for k, v in proposal.formulas.items()} == found["formulas"]
+    assert proposal.fit.equals(theirs.fit) and "propose run: " + proposal.run_id in proposal.printed
+    exported = physmend.export(proposal, export={"output_dir": str(tmp_path / "exported")})
+    assert {"latex", "sympy", "python"} <= set(exported.paths) and all(Path(p).exists() for p in exported.written)

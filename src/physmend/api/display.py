@@ -16,17 +16,38 @@ def heading(title: str, run_id: str, note: str = "") -> str:
     return f"<h4>{html.escape(title)}</h4><p>run <code>{html.escape(run_id)}</code>{extra}</p>"
 
 
-def equations(formulas: Mapping[str, Any], *, prefix: str = "+") -> str:
-    """One line per corrected state: ``d(state)/dt = … + formula`` in LaTeX (MathJax renders ``$$``)."""
+def rounded(expr: Any, digits: int = 4) -> Any:
+    """``expr`` with its numbers shown to ``digits`` significant digits (for display only)."""
+    import sympy as sp
+
+    return expr.evalf(digits) if isinstance(expr, sp.Basic) else expr
+
+
+def signed(expr: Any) -> str:
+    """``+ term`` or ``- term`` (never ``+ -term``), numbers to 4 significant digits."""
+    text = str(rounded(expr))
+    return f"- {text[1:]}" if text.startswith("-") else f"+ {text}"
+
+
+def terms(formulas: Mapping[str, Any]) -> str:
+    """``state: + term; …`` in one line."""
+    return "; ".join(f"{state}: {signed(expr)}" for state, expr in formulas.items())
+
+
+def equations(formulas: Mapping[str, Any]) -> str:
+    """One line per corrected state: ``d(state)/dt = … + term`` in LaTeX (Jupyter typesets ``$…$``),
+    and the term as text."""
     import sympy as sp
 
     if not formulas:
         return "<p>(no formulas)</p>"
     lines = []
     for state, expr in formulas.items():
-        tex = sp.latex(expr) if isinstance(expr, sp.Basic) else html.escape(str(expr))
-        lines.append(f"<li>$\\frac{{d\\,\\mathrm{{{_tex_name(state)}}}}}{{dt}} = \\ldots {prefix} {tex}$ "
-                     f"<code>{html.escape(str(expr))}</code></li>")
+        shown = rounded(expr)
+        tex = sp.latex(shown, mul_symbol="dot") if isinstance(shown, sp.Basic) else html.escape(str(shown))
+        tex = tex if tex.startswith("-") else "+ " + tex
+        lines.append(f"<li>$\\frac{{d\\,\\mathrm{{{_tex_name(state)}}}}}{{dt}} = \\ldots {tex}$ "
+                     f"&nbsp; <code>{html.escape(state)}: {html.escape(signed(expr))}</code></li>")
     return "<ul>" + "".join(lines) + "</ul>"
 
 

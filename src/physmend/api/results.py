@@ -227,7 +227,7 @@ class SymbolicResult(StageResult):
                    metrics=files.metrics(), **common)
 
     def _summary(self) -> str:
-        return "; ".join(f"{s}: + {e}" for s, e in self.formulas.items())
+        return display.terms(self.formulas)
 
     def _body(self) -> str:
         return display.equations(self.formulas) + display.table(self.terms, caption="Terms")
@@ -265,7 +265,7 @@ class Proposal(StageResult):
         held = self.fit[self.fit["role"] == "test"] if self.fit is not None and len(self.fit) else None
         gain = (f"held-out RMSE improved {held['improvement'].min():.1f}× to {held['improvement'].max():.1f}×"
                 if held is not None and len(held) else "")
-        terms = "; ".join(f"{s}: + {e}" for s, e in self.formulas.items())
+        terms = display.terms(self.formulas)
         return ", ".join(x for x in (terms, gain) if x)
 
     def _body(self) -> str:

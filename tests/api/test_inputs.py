@@ -127,3 +127,23 @@ def test_a_model_object_and_tables_make_the_command_lines_diagnose_run(
     assert list(mine.fits["experiment"]) == ["r1", "r1", "r2", "r2"] and mine.fits["rmse"].gt(0).all()
     assert "worst misfit" in repr(mine) and "<table" in mine._repr_html_()
     assert "diagnose run: " + mine.run_id in mine.printed
+
+
+@pytest.mark.slow
+def test_tables_go_through_a_sweep_and_a_result_hands_on_its_selected_trial(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, reset_mlflow: None) -> None:
+    """Each trial's configuration is composed from the call's own config folder (the tables written
+    there), as the command line composes it; ``mask(sweep_result)`` starts from its selected trial."""
+    monkeypatch.chdir(tmp_path)
+    cheap = {"train": {"epochs": 20, "eval_every": 10}, "ude": {"depth": 1}, "diagnose": {"plots": False}}
+    diagnosis = physmend.diagnose(str(CSTR / "model.py") + ":build", physmend.Dataset(_tables(), time_unit="min"),
+                                  **cheap)
+    swept = physmend.sweep(source=diagnosis, sweep={"n_trials": 1, "space": "small"})
+    assert len(swept.trials) == 1 and swept.trials["state"].tolist() == ["COMPLETE"]
+    assert swept.selected_run_id == swept.best_run_id == swept.trials["run_id"][0]
+    masked = physmend.mask(swept, mask={"retrain": False})
+    assert masked.files.tags()["physmend.source_run_id"] == swept.selected_run_id
+    assert set(masked.kept) <= {"reactor.A", "reactor.B"} and len(masked.ranking) == 2
+    workspace = Path(diagnosis.call.config_dir).parent
+    assert (workspace / "telemetry").is_dir() and swept.call.workspace is diagnosis.call.workspace
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mlartifacts", "mlflow.db", "optuna.db"]

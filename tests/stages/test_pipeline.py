@@ -65,6 +65,12 @@ def test_pipeline_end_to_end_on_a_user_model(user_project: Path, monkeypatch: py
     assert test_row["after"] < test_row["before"]
     assert {"report.md", "report.html", "corrections.yaml"} <= {a.path for a in client.list_artifacts(prop_id)}
     # each stage's run says what it found, in the MLflow UI's description, and names its source
+    # held-out means held out: a trial never simulates the test experiment (run3); the kept network
+    # (mask) and the proposal report it
+    trial = client.get_run(client.get_run(mask_id).data.tags["physmend.source_run_id"])
+    assert trial.data.tags["physmend.stage"] == "trial" and "val.rmse" in trial.data.metrics
+    assert not [k for k in trial.data.metrics if k.startswith("test.") or k.startswith("rmse.run3.")], trial.data.metrics
+    assert "test.rmse" in client.get_run(mask_id).data.metrics and "rmse.run3.cart.x" in client.get_run(mask_id).data.metrics
     notes = {name: client.get_run(rid).data.tags.get("mlflow.note.content", "")
              for name, rid in (("mask", mask_id), ("symbolic", sym_id), ("propose", prop_id))}
     assert notes["mask"].startswith("Kept corrections: cart.v") and "Source trial:" in notes["mask"], notes

@@ -77,13 +77,21 @@ def _touches_problem(key: str) -> bool:
 
 
 class TrialConfigs:
-    """Builds each trial's config and problem; the problem is shared unless a trial changes it."""
+    """Builds each trial's config and problem; the problem is shared unless a trial changes it.
+
+    A trial's problem has no test experiments (:func:`physmend.ude.metrics.checkpoint_problem`):
+    a trial is judged on training and validation data only, and its test metrics would cost a
+    whole-trajectory solve of every test record per trial (a long test record: minutes) for figures
+    no choice may read. The masked network's retraining and the proposal report the held-out fit.
+    """
 
     def __init__(self, cfg: DictConfig, problem: "Problem", overrides: Sequence[str] | None, config_dir: Any) -> None:
         self.cfg = cfg
         self.overrides = None if overrides is None else list(overrides)
         self.config_dir = config_dir
-        self._problems: dict[tuple[tuple[str, str], ...], Problem] = {(): problem}
+        from physmend.ude.metrics import checkpoint_problem
+
+        self._problems: dict[tuple[tuple[str, str], ...], Problem] = {(): checkpoint_problem(problem)}
 
     def config(self, values: dict[str, Any]) -> DictConfig:
         """The composed config of a trial: the sweep's overrides, then the trial's values."""
@@ -98,8 +106,9 @@ class TrialConfigs:
 
     def problem(self, values: dict[str, Any], cfg: DictConfig) -> "Problem":
         from physmend.problem import load_problem
+        from physmend.ude.metrics import checkpoint_problem
 
         key = tuple(sorted((k, hydra_value(v)) for k, v in values.items() if _touches_problem(k)))
         if key not in self._problems:
-            self._problems[key] = load_problem(cfg)
+            self._problems[key] = checkpoint_problem(load_problem(cfg))
         return self._problems[key]

@@ -46,21 +46,6 @@ def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]
     return ref, None
 
 
-def held_out_metrics(problem: Any, problem_cfg: Any) -> dict[str, float]:
-    """``test.rmse`` and the per-experiment RMSE of the test experiments of ``problem`` (report only)."""
-    import dataclasses
-
-    test = [e for e in problem.experiments if e.role == "test"]
-    if not test:
-        return {}
-    only = dataclasses.replace(problem, experiments=test)
-    ref, _ = simulate_corrected(only, problem_cfg)
-    if ref is None:
-        return {"test.rmse": float("nan")}
-    out = corrected_metrics(only, ref, require_validation=False)
-    return {k: v for k, v in out.items() if k == "test.rmse" or k.startswith("rmse.")}
-
-
 def with_parameters(problem: Any, values: dict[str, float]) -> Any:
     """``problem`` with the parameters ``values`` (name -> value) changed in every experiment."""
     import dataclasses

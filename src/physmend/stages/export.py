@@ -170,6 +170,14 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
              "python": lambda: python_module(sm, experiments, info),
              "network": network,
              "petab": petab}
+    if str(cfg.export.format) == "all":  # every format this proposal allows: a network that cannot be loaded is left out
+        try:
+            network_files = network()
+        except ValueError as exc:  # TrackingError, ModelError, DataError, ConfigError: one line naming the run
+            print(f"network left out: {exc}")
+            formats = [f for f in formats if f != "network"]
+        else:
+            texts["network"] = lambda: network_files
     written = {f: texts[f]() for f in formats}  # every text first: a failing writer leaves no file behind
     made: list[Path] = []
     try:

@@ -340,7 +340,11 @@ class Sweep:
                 trial.set_user_attr(REASON_ATTR, outcome.reason[:2000])
                 self.study.tell(trial, state=TrialState.FAIL)
         except (ValueError, RuntimeError) as exc:  # finished meanwhile, e.g. judged stale by another worker
-            sys.stderr.write(f"trial {trial.number}: could not record the result in the study: {exc}\n")
+            message = f"trial {trial.number}: could not record the result in the study: {exc}"
+            if self.bar is not None:
+                _say(self.bar, message)  # above the progress bar, not over its line
+            else:
+                sys.stderr.write(message + "\n")
 
     # ---- one trial
     def run_trial(self, trial: "optuna.Trial") -> Outcome:

@@ -195,10 +195,13 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     work = merged(src.cfg, cfg, "mask")
     hybrid, problem = src.hybrid, src.problem
     mc = cfg.mask
-    traj = training_trajectories(hybrid, problem, work)
-    ranking = rank_corrections(hybrid, traj)
-    checked = checkpoint_problem(problem)  # val.rmse needs the train and validation experiments only
-    full = evaluate(hybrid, checked, work)["val.rmse"]
+    from physmend.stages.activity import activity
+
+    with activity("mask: ranking the corrections and simulating the full network"):
+        traj = training_trajectories(hybrid, problem, work)
+        ranking = rank_corrections(hybrid, traj)
+        checked = checkpoint_problem(problem)  # val.rmse needs the train and validation experiments only
+        full = evaluate(hybrid, checked, work)["val.rmse"]
     if mc.keep:
         kept = [str(n) for n in mc.keep]
         unknown = [n for n in kept if n not in hybrid.spec.corrected]
@@ -213,7 +216,8 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         for k_try in range(1, min(int(mc.max_k), len(order)) + 1):
             hybrid.keep_only(order[:k_try])
             try:
-                by_k.append((k_try, evaluate(hybrid, checked, work)["val.rmse"]))
+                with activity(f"mask: simulating with the top {k_try} of {len(order)} corrections"):
+                    by_k.append((k_try, evaluate(hybrid, checked, work)["val.rmse"]))
             except TrainingDiverged:  # without the other corrections this network leaves every range
                 by_k.append((k_try, math.inf))
             if by_k[-1][1] <= (1.0 + float(mc.tolerance)) * full:

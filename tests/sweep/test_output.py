@@ -1,6 +1,7 @@
 """What a sweep prints: a 20-trial sweep's output stays short (the summary on stdout, one progress
-bar on stderr that says which trials train and their epoch), real training in a real MLflow sqlite
-store (the user's oscillator of tests/conftest.py, trials trained ten at a time)."""
+bar on stderr that says which trials train and their epoch), and a worker that ends while another
+still trains says its choice is not final; real training in a real MLflow sqlite store and Optuna
+study (the user's oscillator of tests/conftest.py, trials trained ten at a time)."""
 
 from __future__ import annotations
 
@@ -31,3 +32,15 @@ def test_a_20_trial_sweep_prints_under_60_lines(user_project: Path, monkeypatch:
     assert f"{N_TRIALS} of {N_TRIALS} trials: {N_TRIALS} complete" in out and "best: trial" in out
     assert "not final" not in out and "so far" not in out  # one worker: its choice is final
     assert "epoch 2/2" in err  # the bar counts epochs inside the trials, not only trials
+
+    # another worker's trial still runs (asked here, as that worker would, heartbeat fresh): a worker
+    # that ends now prints what it found so far, never a final choice
+    import optuna
+
+    study = optuna.load_study(study_name="oscillator-oscillator-small", storage=f"sqlite:///{user_project / 'optuna.db'}")
+    study.ask()
+    args = [a for a in TINY if not a.startswith("sweep.n_trials=")]
+    assert main(["sweep", "--config-dir", str(user_project / "my_conf"), *args, f"sweep.n_trials={N_TRIALS + 1}"]) == 0
+    out = capfd.readouterr().out
+    assert "best so far: trial" in out and "selected so far: " in out, out
+    assert "not final: 1 trial(s) still running in other workers; the last worker to finish records the final choice" in out

@@ -153,6 +153,7 @@ def test_a_bad_space_or_key_is_an_error_before_anything_is_written(user_project:
 def test_sweep_resume_structure_selection_and_reload(user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:  # noqa: ANN001
     from physmend.tracking import current_selection, load_trial
     from physmend.ude import evaluate
+    from physmend.ude.metrics import checkpoint_problem
 
     monkeypatch.chdir(user_project)
     assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=2")) == 0
@@ -213,10 +214,13 @@ def test_sweep_resume_structure_selection_and_reload(user_project: Path, monkeyp
     assert current_selection(store) == best_run
     assert f"best: trial {best.number}" in out and best_run in out
 
-    # reload from the run ID reproduces the logged metric
+    # reload from the run ID reproduces the logged metric (a trial is judged without the test
+    # experiments: the same problem, the same solve)
     loaded = load_trial(store, kids[1].info.run_id)
     assert loaded.cfg.ude.width == trials[1].params["ude.width"]
-    assert evaluate(loaded.hybrid, loaded.problem, loaded.cfg)["val.rmse"] == pytest.approx(kids[1].data.metrics["val.rmse"], rel=1e-6)
+    assert any(e.role == "test" for e in loaded.problem.experiments)
+    assert evaluate(loaded.hybrid, checkpoint_problem(loaded.problem), loaded.cfg)["val.rmse"] == pytest.approx(
+        kids[1].data.metrics["val.rmse"], rel=1e-6)
     cfg, _, hybrid = load_trial(store)  # None: the current selection
     assert cfg.ude.width == best.params["ude.width"]
     assert hybrid is not None

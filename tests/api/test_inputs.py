@@ -147,3 +147,18 @@ def test_tables_go_through_a_sweep_and_a_result_hands_on_its_selected_trial(
     workspace = Path(diagnosis.call.config_dir).parent
     assert (workspace / "telemetry").is_dir() and swept.call.workspace is diagnosis.call.workspace
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mlartifacts", "mlflow.db", "optuna.db"]
+
+
+def test_a_later_call_with_its_own_config_folder_keeps_the_earlier_model_and_tables(tmp_path: Path) -> None:
+    from physmend.api.inputs import prepare
+    from physmend.config import compose
+
+    mine = tmp_path / "conf" / "train"
+    mine.mkdir(parents=True)
+    (mine / "fast.yaml").write_text("defaults:\n  - default\n  - _self_\nepochs: 7\n")
+    first = prepare(str(CSTR / "model.py") + ":build", _tables(), settings={"seed": 2})
+    later = prepare(config_dir=tmp_path / "conf", overrides=["train=fast"], base=first)
+    cfg = compose(list(later.overrides), user_config_dir=later.config_dir)
+    assert cfg.train.epochs == 7 and cfg.seed == 2 and cfg.model.builder == f"{CSTR / 'model.py'}:build"
+    assert [e["id"] for e in cfg.data.experiments] == ["r1", "r2"] and Path(cfg.data.root).is_dir()
+    assert later.workspace.parent is first.workspace  # the tables stay while the later call's results live

@@ -19,7 +19,7 @@ from physmend.api.results import (
 )
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class Discovery(StageResult):
     """Diagnose → sweep → mask → sensitivity → symbolic → propose, end to end.
 

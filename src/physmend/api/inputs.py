@@ -306,7 +306,8 @@ def prepare(model: Any = None, data: Any = None, *, settings: Mapping[str, Any] 
     choices += [f"data={data_option or OPTION}"] if data is not None else []
     start = base or Inputs()
     user_dir = str(Path(config_dir).expanduser().resolve()) if config_dir is not None else start.config_dir
-    if model_cfg is None and data_cfg is None:
+    carried = start.workspace if config_dir is not None else None  # its model/data configs go on with us
+    if model_cfg is None and data_cfg is None and carried is None:
         if config_dir is not None:
             return Inputs(start.with_settings([*choices, *extra]).overrides, user_dir, None)
         return start.with_settings([*choices, *extra])
@@ -314,6 +315,11 @@ def prepare(model: Any = None, data: Any = None, *, settings: Mapping[str, Any] 
     ws.parent = start.workspace  # its telemetry may be named by configs copied from it
     try:
         _write(ws, user_dir, model_cfg, data_cfg, tables)
+        for group in ("model", "data"):
+            staged = carried.conf / group / f"{OPTION}.yaml" if carried is not None else None
+            if staged is not None and staged.is_file() and not (ws.conf / group / f"{OPTION}.yaml").exists():
+                (ws.conf / group).mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(staged, ws.conf / group / f"{OPTION}.yaml")
     except BaseException:
         ws.remove()
         raise

@@ -18,9 +18,11 @@ from physmend.api.artifacts import RunFiles, figure_of_png
 from physmend.api.inputs import Inputs
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StageResult:
-    """Base of every result: the run, what it printed, its plots (artifact paths of PNG files)."""
+    """Base of every result: the run, what it printed, its plots (artifact paths of PNG files).
+
+    Results compare by identity (their tables are DataFrames); compare ``run_id`` to compare runs."""
 
     run_id: str
     plots: tuple[str, ...] = field(default=(), repr=False)
@@ -66,7 +68,7 @@ def _frame(rows: Any, columns: list[str] | None = None) -> Any:
     return pd.DataFrame(rows, columns=columns)
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class Diagnosis(StageResult):
     """The model as written against the telemetry.
 
@@ -96,7 +98,7 @@ class Diagnosis(StageResult):
         return display.table(self.fits, caption="Fit of the model as written")
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class SweepResult(StageResult):
     """The architecture sweep (the parent run): ``trials`` (one row per trial: ``run_id``, ``number``,
     ``state``, ``val_rmse`` in output units, ``selected``, ``best``, ``params``), the automatic
@@ -129,7 +131,7 @@ class SweepResult(StageResult):
         return display.table(shown, caption="Trials")
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class MaskResult(StageResult):
     """Which corrections matter: ``kept`` (state names), ``ranking`` (``state``, ``score`` = mean |ΔNN| /
     max |du/dt|), ``by_k`` (``k``, ``val_rmse`` with the top k unmasked) and the full network's
@@ -157,7 +159,7 @@ class MaskResult(StageResult):
         return display.table(self.ranking, caption="Corrections ranked")
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class SensitivityResult(StageResult):
     """Which inputs the kept corrections depend on: ``inputs`` (those passed to symbolic regression),
     ``ranking`` (``input``, ``score`` = mean |∂correction/∂input|·std(input), normalised) and
@@ -187,7 +189,7 @@ class SensitivityResult(StageResult):
         return display.table(self.ranking, caption="Inputs ranked")
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class SymbolicResult(StageResult):
     """The network's corrections as formulas.
 
@@ -233,7 +235,7 @@ class SymbolicResult(StageResult):
         return display.equations(self.formulas) + display.table(self.terms, caption="Terms")
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class Proposal(StageResult):
     """The corrected model checked on every experiment, held-out ones included.
 
@@ -272,7 +274,7 @@ class Proposal(StageResult):
         return display.equations(self.formulas) + display.table(self.fit, caption="Fit before and after (RMSE)")
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class Decision(StageResult):
     """The engineer's decision on a proposal: ``decision`` (``accepted``/``rejected``), the written
     ``corrections_file`` (accepted; load it with ``model.corrections=<file>``) or the ``reason``."""
@@ -295,7 +297,7 @@ class Decision(StageResult):
         return f"{self.decision}{where}" + (f", reason {self.reason!r}" if self.reason else "")
 
 
-@dataclass(frozen=True, repr=False)
+@dataclass(frozen=True, repr=False, eq=False)
 class ExportResult(StageResult):
     """The files ``export`` wrote: ``paths``, format (``latex``, ``sympy``, ``python``, ``petab`` …) -> its
     file or folder; ``written``, every file and folder it wrote (absolute paths)."""

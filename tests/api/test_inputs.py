@@ -162,3 +162,21 @@ def test_a_later_call_with_its_own_config_folder_keeps_the_earlier_model_and_tab
     assert cfg.train.epochs == 7 and cfg.seed == 2 and cfg.model.builder == f"{CSTR / 'model.py'}:build"
     assert [e["id"] for e in cfg.data.experiments] == ["r1", "r2"] and Path(cfg.data.root).is_dir()
     assert later.workspace.parent is first.workspace  # the tables stay while the later call's results live
+
+
+def test_a_builder_in_a_file_is_named_by_its_file_and_others_are_registered(monkeypatch: pytest.MonkeyPatch) -> None:
+    from physmend.api.models import register
+    from physmend.modeling.loader import load_model
+
+    spec = importlib.util.spec_from_file_location("cstr_model_named_by_file", CSTR / "model.py")
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)
+    spec.loader.exec_module(module)
+    assert register(module.build) == f"{(CSTR / 'model.py').resolve()}:build"  # later commands can import it
+    made = module.build()
+    ref = register(made)  # an object: registered, a fresh copy per build, later edits of it change nothing
+    assert ref.startswith("physmend.api.models:") and register(made) == ref
+    first, second = load_model(ref), load_model(ref)
+    assert first is not made and first is not second and first.name == made.name == "cstr"
+    inline = register(lambda: module.build())  # a function defined in a notebook: registered too
+    assert inline.startswith("physmend.api.models:") and load_model(inline).name == "cstr"

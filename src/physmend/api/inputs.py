@@ -14,7 +14,7 @@ import re
 import shutil
 import tempfile
 import weakref
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -353,20 +353,3 @@ def _write(ws: Workspace, user_dir: str | None, model_cfg: dict[str, Any] | None
                 frame.to_csv(root / name, index=False)
             cfg = {**cfg, "root": str(root)}
         (ws.conf / group / f"{OPTION}.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
-
-
-def builder_of(fn: Callable[..., Any]) -> str | None:
-    """``path/file.py:name`` when ``fn`` is a module-level function of a file it can be imported from
-    again (so a later ``physmend`` command can name it), else None."""
-    import inspect
-    import sys
-
-    name = getattr(fn, "__name__", "")
-    module = sys.modules.get(getattr(fn, "__module__", "") or "")
-    if not name or module is None or module.__name__ == "__main__" or getattr(module, name, None) is not fn:
-        return None
-    try:
-        path = inspect.getsourcefile(fn)
-    except TypeError:
-        return None
-    return f"{Path(path).resolve()}:{name}" if path and Path(path).is_file() else None

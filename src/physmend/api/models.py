@@ -4,7 +4,7 @@
 builder that returns a fresh copy of the registered :class:`~physmend.modeling.Model` (or calls the
 registered builder function), so a stage composed from Python builds it as it builds a model file.
 A builder function defined in an importable file is named by its file instead
-(:func:`physmend.api.inputs.builder_of`), which later ``physmend`` commands can import too.
+(:func:`builder_of`), which later ``physmend`` commands can import too.
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import re
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 _REGISTRY: dict[str, Callable[..., Any]] = {}
@@ -22,7 +23,6 @@ _UNSAFE = re.compile(r"\W")
 
 def register(model: Any) -> str:
     """The ``model.builder`` reference of ``model`` (a Model or a builder function)."""
-    from physmend.api.inputs import builder_of
     from physmend.modeling import Model
 
     if not isinstance(model, Model):
@@ -53,3 +53,20 @@ def __getattr__(name: str) -> Callable[..., Any]:
     except KeyError:
         raise AttributeError(f"no model registered as {name!r} in this Python process (a model given as an "
                              "object lives as long as the process; name a model file for later commands)") from None
+
+
+def builder_of(fn: Callable[..., Any]) -> str | None:
+    """``path/file.py:name`` when ``fn`` is a module-level function of a file it can be imported from
+    again (so a later ``physmend`` command can name it), else None."""
+    import inspect
+    import sys
+
+    name = getattr(fn, "__name__", "")
+    module = sys.modules.get(getattr(fn, "__module__", "") or "")
+    if not name or module is None or module.__name__ == "__main__" or getattr(module, name, None) is not fn:
+        return None
+    try:
+        path = inspect.getsourcefile(fn)
+    except TypeError:
+        return None
+    return f"{Path(path).resolve()}:{name}" if path and Path(path).is_file() else None

@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import subprocess
 import sys
-import time
-import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: shared helpers  # noqa: E402
+from mlflow_servers import free_port, mlflow_server as serve_mlflow  # noqa: E402
 
 N_TRIALS = 4
 TINY = [
@@ -26,12 +26,6 @@ TINY = [
     "sweep.progress=false", "sweep.figures=false", "sweep.space=small", "sweep.pruner=none",
     "sweep.study_name=shared", f"sweep.n_trials={N_TRIALS}",
 ]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 @pytest.fixture
@@ -56,7 +50,7 @@ def postgres() -> Iterator[str]:
             pytest.skip("running as root and no 'postgres' user to run PostgreSQL as")
         os.chown(data, pw.pw_uid, pw.pw_gid)
         as_user = ["runuser", "-u", "postgres", "--"]
-    port = _free_port()
+    port = free_port()
     subprocess.run([*as_user, initdb, "-D", str(data / "db"), "-U", "postgres", "--auth=trust", "-E", "UTF8"],
                    check=True, capture_output=True)
     subprocess.run([*as_user, pg_ctl, "-D", str(data / "db"), "-o", f"-p {port} -k {data} -c listen_addresses=127.0.0.1",
@@ -79,34 +73,9 @@ def postgres() -> Iterator[str]:
 @pytest.fixture
 def mlflow_server(postgres: str, tmp_path: Path) -> Iterator[str]:
     """``mlflow server`` on the PostgreSQL above, artifacts proxied to a folder: yields its URL."""
-    port = _free_port()
-    log = open(tmp_path / "mlflow-server.log", "w")  # noqa: SIM115
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"postgresql+psycopg2://postgres@{postgres}/mlflow",
-         "--artifacts-destination", str(tmp_path / "server-artifacts"), "--host", "127.0.0.1", "--port", str(port),
-         "--workers", "1"], stdout=log, stderr=subprocess.STDOUT, cwd=tmp_path)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
-                    if r.status == 200:
-                        break
-            except OSError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                log.close()
-                pytest.fail("mlflow server did not start:\n" + (tmp_path / "mlflow-server.log").read_text()[-3000:])
-            time.sleep(0.5)
+    with serve_mlflow(f"postgresql+psycopg2://postgres@{postgres}/mlflow", tmp_path / "server-artifacts", tmp_path,
+                       tmp_path / "mlflow-server.log") as url:
         yield url
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
 
 
 @pytest.mark.slow

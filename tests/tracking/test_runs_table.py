@@ -14,15 +14,15 @@ from __future__ import annotations
 import html
 import os
 import shutil
-import socket
 import subprocess
 import sys
-import time
-import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: shared helpers  # noqa: E402
+from mlflow_servers import mlflow_server  # noqa: E402
 
 N_TRIALS = 3
 TINY = [
@@ -34,46 +34,14 @@ TINY = [
 MLFLOW_LINES = ("View run", "View experiment", "🏃", "🧪", " INFO mlflow", "mlflow.tracking", "mlflow.store")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.fixture
 def tracking_server(tmp_path: Path) -> Iterator[str]:
     """``mlflow server`` on an sqlite store with proxied artifacts: yields its URL."""
-    port = _free_port()
     folder = tmp_path / "server"
     folder.mkdir()
-    log = open(folder / "server.log", "w")  # noqa: SIM115
     env = {**os.environ, "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{folder / 'mlflow.db'}",
-         "--artifacts-destination", str(folder / "artifacts"), "--host", "127.0.0.1", "--port", str(port),
-         "--workers", "1"], stdout=log, stderr=subprocess.STDOUT, cwd=folder, env=env)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
-                    if r.status == 200:
-                        break
-            except OSError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                log.close()
-                pytest.fail("mlflow server did not start:\n" + (folder / "server.log").read_text()[-3000:])
-            time.sleep(0.3)
+    with mlflow_server(f"sqlite:///{folder / 'mlflow.db'}", folder / "artifacts", folder, folder / "server.log", env) as url:
         yield url
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
 
 
 def _browse(chromium: str, address: str, shot: Path) -> str:

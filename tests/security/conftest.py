@@ -1,11 +1,16 @@
 """A finished sweep trial in a real MLflow sqlite store, written in about a second: a sweep run, a
 trial run under it with the user's configuration, the model's fingerprint and a real (untrained)
 hybrid model's ``model/hybrid.json`` and ``model/weights.pt`` — what a sweep leaves, without the
-training. Tests tamper with its artifacts as anyone with write access to a shared store could."""
+training. Tests tamper with its artifacts as anyone with write access to a shared store could. Also: a
+TCP server that accepts connections and never answers (a stalled database), and the ``physmend``
+command of this environment for tests that run it as a process."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import socket
+import sys
+import threading
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -84,3 +89,42 @@ def run_cli(capsys: pytest.CaptureFixture[str]) -> Callable[..., tuple[int, str]
         return rc, capsys.readouterr().err
 
     return call
+
+
+def physmend_command() -> list[str]:
+    """The installed ``physmend`` command of this interpreter's environment (a real process)."""
+    script = Path(sys.executable).with_name("physmend")
+    if script.is_file():
+        return [str(script)]
+    return [sys.executable, "-c", "import sys; from physmend.cli import main; sys.exit(main())"]
+
+
+@pytest.fixture
+def silent_server() -> Iterator[int]:
+    """A real TCP server on 127.0.0.1 that accepts every connection and never sends a byte (a stalled
+    database, a tarpit, the wrong service): yields its port; closed at the end."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(64)
+    held: list[socket.socket] = []
+    stop = threading.Event()
+
+    def accept() -> None:
+        listener.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                conn, _ = listener.accept()
+            except OSError:
+                continue
+            held.append(conn)  # kept open, never answered
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    try:
+        yield int(listener.getsockname()[1])
+    finally:
+        stop.set()
+        thread.join(2)
+        for conn in held:
+            conn.close()
+        listener.close()

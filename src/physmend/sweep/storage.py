@@ -43,10 +43,15 @@ _COMPARED = ("model", "data", "simulate", "ude", "train", "seed")
 
 
 def open_storage(url: str) -> "optuna.storages.RDBStorage":
-    """The Optuna RDB storage at ``url`` (``sqlite:///`` paths resolve against the working directory)."""
+    """The Optuna RDB storage at ``url`` (``sqlite:///`` paths resolve against the working directory).
+
+    A database server is probed first, within seconds whatever its driver: one that accepts the
+    connection and never answers is one line, not a sweep that hangs (``tracking.store.probe_store``).
+    """
     import optuna
 
     from physmend.tracking import TrackingError, sqlite_path
+    from physmend.tracking.store import SERVER_TIMEOUT_S, probe_store
 
     kwargs: dict[str, Any] = {}
     db = sqlite_path(url)
@@ -55,6 +60,8 @@ def open_storage(url: str) -> "optuna.storages.RDBStorage":
             raise TrackingError(f"tracking.optuna_storage {url!r}: the folder {str(db.parent)!r} for the database does not exist")
         url = f"sqlite:///{db}"
         kwargs["engine_kwargs"] = {"connect_args": {"timeout": 60}}
+    else:
+        probe_store(url, timeout=SERVER_TIMEOUT_S, key="tracking.optuna_storage")
     try:
         return _retry(lambda: optuna.storages.RDBStorage(url, **kwargs))
     except (ImportError, ValueError, optuna.exceptions.OptunaError) as exc:

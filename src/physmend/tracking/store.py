@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from physmend.redact import redact
+from physmend.tracking.probe import scheme_of
 
 if TYPE_CHECKING:
     from mlflow.tracking import MlflowClient
@@ -71,46 +72,40 @@ def quiet_mlflow() -> None:
         logging.getLogger("mlflow").setLevel(logging.WARNING)
 
 
-#: database URI schemes (SQLAlchemy dialects MLflow stores runs in)
-_DATABASES = ("sqlite", "postgresql", "mysql", "mssql")
+#: seconds a database server may take to accept a connection and list its tables before a stage gives
+#: up (MLflow itself would retry for about 100 s, and wait forever on one that accepts and never answers)
+SERVER_TIMEOUT_S = 5
+#: the same for an sqlite file (no network; a writer's lock may hold it a few seconds)
+SQLITE_TIMEOUT_S = 10
 
 
-def _probe_database(uri: str, timeout: int = 10) -> None:
-    """Connect once to a database store and list its tables: a corrupt file, a folder that cannot
-    be written or a server that does not answer within ``timeout`` seconds fails here at once (MLflow
-    itself retries for about 100 s before it gives up)."""
-    scheme = uri.split(":", 1)[0].split("+", 1)[0].lower()
-    if scheme not in _DATABASES:
-        return
-    import sqlalchemy
+def probe_store(uri: str, *, timeout: float = SQLITE_TIMEOUT_S, key: str = "tracking.uri",
+                shown: str | None = None) -> None:
+    """Raise :class:`TrackingError` (one line naming ``key`` and the URI as the user wrote it,
+    ``shown``, redacted) when the database store ``uri`` cannot be opened within ``timeout`` seconds,
+    whatever its driver (a server that accepts connections and never answers included:
+    :mod:`physmend.tracking.probe`); other stores (a server, a folder) are not probed."""
+    from physmend.tracking.probe import probe_database
 
-    connect_args = {"connect_timeout": int(timeout)} if scheme in ("postgresql", "mysql") else {}
-    engine = sqlalchemy.create_engine(uri, connect_args=connect_args)
     try:
-        sqlalchemy.inspect(engine).get_table_names()
-    finally:
-        engine.dispose()
-
-
-def probe_store(uri: str, *, timeout: int = 10) -> None:
-    """Raise :class:`TrackingError` (one line, the URI redacted) when the database store ``uri`` cannot
-    be opened within ``timeout`` seconds; other stores (a server, a folder) are not probed."""
-    try:
-        _probe_database(uri, timeout)
+        probe_database(uri, timeout)
     except Exception as exc:  # noqa: BLE001 - any failure to open the store is one line naming it
-        raise TrackingError(f"tracking.uri {redact(uri)!r} cannot be opened: {_reason(exc)}") from None
+        raise TrackingError(f"{key} {redact(shown or uri)!r} cannot be opened: {_reason(exc)}") from None
 
 
 def _reason(exc: BaseException) -> str:
     """The first line of what a store library said, without its SQL, links and stack."""
+    from physmend.tracking.probe import DRIVER_PACKAGES
+
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     for noise in ("(sqlite3.OperationalError) ", "(sqlite3.DatabaseError) "):
         text = text.replace(noise, "")
     if isinstance(exc, KeyError):
         text = f"unknown scheme {text}"
     if isinstance(exc, ModuleNotFoundError):  # SQLAlchemy's driver for the scheme is not installed
-        text = (f"its database driver is not installed ({text}); for PostgreSQL: pip install 'physmend[postgres]' "
-                "and a URI postgresql+psycopg2://…")
+        module = (exc.name or text).split(".")[0]
+        todo = DRIVER_PACKAGES.get(module, f"pip install the package that provides {module!r}")
+        text = f"its database driver {module!r} is not installed ({todo})"
     return redact(text[:300])
 
 
@@ -127,8 +122,7 @@ def _artifact_location(tracking_cfg: Any, uri: str, db: Path | None, name: str) 
         return str(chosen)
     if db is not None:
         return (db.parent / "mlartifacts" / name).as_uri()
-    scheme = uri.split(":", 1)[0].split("+", 1)[0].lower()
-    if scheme in DATABASE_SCHEMES:
+    if scheme_of(uri) in DATABASE_SCHEMES:
         raise TrackingError(
             f"tracking.uri {redact(uri)!r} is a database reached directly: set tracking.artifact_location to a folder "
             "or URI every machine can reach (e.g. s3://bucket/physmend or /shared/mlartifacts), or run an MLflow "
@@ -142,10 +136,6 @@ def open_store(tracking_cfg: Any) -> Store:
 
     With an sqlite store, artifacts live in ``mlartifacts/`` beside the database file.
     """
-    import mlflow
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
     uri = str(tracking_cfg.uri)
     name = str(tracking_cfg.experiment)
     db = sqlite_path(uri)
@@ -160,8 +150,14 @@ def open_store(tracking_cfg: Any) -> Store:
     os.environ.setdefault("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "1")
     os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "20")
     quiet_mlflow()
+    # a database that does not answer: one line within seconds (before MLflow's import, another second)
+    probe_store(uri, timeout=SQLITE_TIMEOUT_S if db is not None else SERVER_TIMEOUT_S, key="tracking.uri",
+                shown=str(tracking_cfg.uri))
+    import mlflow
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
     try:
-        _probe_database(uri)
         mlflow.set_tracking_uri(uri)
         with _folder_lock(db.parent if db is not None else None):  # workers starting together: one creates
             client = MlflowClient(tracking_uri=uri)

@@ -5,18 +5,21 @@ can be read by every user of the machine (``ps``, ``/proc/PID/cmdline``), its en
 the user who started it: so the MLflow child gets the store in ``MLFLOW_BACKEND_STORE_URI`` (the
 variable ``mlflow ui --backend-store-uri`` reads), and what is printed is redacted. Before the
 server starts, the store is probed once with a short timeout: a store that does not answer is one
-line, not minutes of MLflow's own retries. A tracking server (``http(s)://``) is its own UI: its
-address is printed and nothing is started. Imports ``redact`` and the tracking store.
+line, not minutes of MLflow's own retries, and one that accepts connections but never answers is
+given up after :data:`PROBE_TIMEOUT` seconds whatever its driver (:mod:`physmend.tracking.probe`).
+The server stops with physmend on SIGTERM and SIGHUP as on Ctrl-C (:mod:`physmend.tracking.child`).
+A tracking server (``http(s)://``) is its own UI: its address is printed and nothing is started.
+Imports ``redact`` and the tracking store.
 """
 
 from __future__ import annotations
 
 import os
-import subprocess
 import sys
 from typing import Any
 
 from physmend.redact import redact
+from physmend.tracking.child import run_server
 from physmend.tracking.store import TrackingError, probe_store, sqlite_path
 
 #: seconds the store may take to answer before ``physmend ui`` gives up (MLflow itself retries ~100 s)
@@ -33,7 +36,8 @@ def server_command(uri: str, host: str, port: int) -> tuple[list[str], dict[str,
 
 
 def ui(cfg: Any, *, host: str, port: int) -> int:
-    """Start the MLflow UI on ``cfg.tracking`` (blocks until it stops); returns its exit status.
+    """Start the MLflow UI on ``cfg.tracking`` (blocks until it stops); returns its exit status
+    (``128 + signal`` when physmend was told to stop: the server's processes are ended too).
 
     Raises:
         TrackingError: the store's folder is missing or the store does not answer within
@@ -54,7 +58,7 @@ def ui(cfg: Any, *, host: str, port: int) -> int:
     cmd, env = server_command(uri, host, port)
     print(f"running: {' '.join(cmd)} (store {redact(uri)}, passed in the environment as {STORE_VARIABLE})")
     print(f"open: {redact(page(f'http://{host}:{port}', uri if db is None or db.exists() else None, cfg))}")
-    return subprocess.call(cmd, env=env)
+    return run_server(cmd, env)
 
 
 def page(base: str, store_uri: str | None, cfg: Any) -> str:

@@ -196,7 +196,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
-    from physmend.errors import USER_ERRORS
+    from physmend.errors import is_user_error
 
     try:
         if args.command == "ui":
@@ -226,15 +226,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         run_composed(args.command, cfg, getattr(args, "run_id", None),
                      call=Inputs(tuple(args.overrides), args.config_dir))
         return 0
-    except USER_ERRORS as exc:
-        from physmend.redact import redact
-
-        print(bounded(redact(f"physmend {args.command}: error: {exc}")), file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print(f"physmend {args.command}: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:
+        if is_user_error(exc):  # your input is wrong: one line
+            from physmend.redact import redact
+
+            print(bounded(redact(f"physmend {args.command}: error: {exc}")), file=sys.stderr)
+            return 2
         why = disk_trouble(exc)
         if why is None:
             raise

@@ -15,6 +15,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -38,7 +39,8 @@ def run_server(cmd: Sequence[str], env: Mapping[str, str]) -> int:
         if proc is not None:
             _signal_group(proc, signal.SIGTERM if signum != signal.SIGINT else signal.SIGINT, posix)
 
-    previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    main = threading.current_thread() is threading.main_thread()  # only it may set signal handlers
+    previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS} if main else {}
     try:
         proc = subprocess.Popen(list(cmd), env=dict(env), start_new_session=posix)
         if received:  # a signal came while it was starting

@@ -35,6 +35,22 @@ class StoredTrial:
         """The user's own options for a stage loading the trial."""
         return ["--config-dir", str(self.project / "my_conf"), "model=oscillator", "data=oscillator"]
 
+    def proposal(self, corrections: dict[str, Any]) -> str:
+        """A finished propose run beside the trial (its config, model fingerprint and structure) whose
+        ``corrections.yaml`` is ``corrections``: its run ID."""
+        import yaml
+
+        from physmend.tracking.fingerprint import STRUCTURE_FILE
+
+        client = self.store.client
+        tags = {k: v for k, v in client.get_run(self.run_id).data.tags.items() if k.startswith("physmend.model.")}
+        run_id = client.create_run(self.store.experiment_id, tags={"physmend.stage": "propose", **tags}).info.run_id
+        client.log_text(run_id, self.artifact("config.yaml").read_text(), "config.yaml")
+        client.log_text(run_id, self.artifact(STRUCTURE_FILE).read_text(), STRUCTURE_FILE)
+        client.log_text(run_id, yaml.safe_dump(corrections), "corrections.yaml")
+        client.set_terminated(run_id)
+        return run_id
+
 
 @pytest.fixture
 def stored_trial(user_project: Path, monkeypatch: pytest.MonkeyPatch, reset_mlflow: None) -> StoredTrial:

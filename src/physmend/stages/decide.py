@@ -35,10 +35,10 @@ def _validate(cfg: Any, run_id: str, model_name: str, corrections: list[Any], pa
         except Exception:  # noqa: BLE001 - not the proposal's model (or not buildable here): parse the terms alone
             mine = None
     if mine is not None and mine.name == model_name:
-        apply_corrections(mine, corrections, where=f"proposal {run_id}: corrections.yaml", parameters=parameters)
+        apply_corrections(mine, corrections, where=f"proposal {run_id!r}: corrections.yaml", parameters=parameters)
         return
     for k, c in enumerate(corrections):
-        parse_safe(c.term, where=f"proposal {run_id}: corrections.yaml, corrections[{k}].term", new_symbols=True)
+        parse_safe(c.term, where=f"proposal {run_id!r}: corrections.yaml, corrections[{k}].term", new_symbols=True)
 
 
 def _proposal(cfg: Any, run_id: str | None) -> tuple[Any, Any]:

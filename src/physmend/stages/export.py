@@ -119,7 +119,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         local = Path(tmp) / "corrections.yaml"
         local.write_text(Path(corr_path).read_text())
         work.model.corrections = str(local)
-        problem = load_problem(work)
+        try:
+            problem = load_problem(work)
+        except ModelError as exc:  # name the proposal's file, not the copy that is gone when the line is read
+            raise ModelError(str(exc).replace(str(local), f"proposal {run_id!r}: corrections.yaml")) from None
     check_same_model(store, run_, work)
     sm = problem.model
     name = str(meta.get("model", sm.name))

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
-from physmend.modeling.compile import CompiledModel
+from physmend.modeling.compile import BoundRhs, CompiledModel
 from physmend.simulate.core import CLOCK_METHODS, OWN_METHODS, odeint
 from physmend.simulate.inputs import PiecewiseLinear, from_channels
 
@@ -132,8 +132,14 @@ def simulate_batch(
     params: torch.Tensor | None = None,
     u0: torch.Tensor | None = None,
     box: tuple[torch.Tensor, torch.Tensor] | None = None,
+    exact: bool = True,
 ) -> Trajectories:
     """Simulate the model as written for every experiment of ``batch`` in one batched solve.
+
+    A model affine in every row (``A u + B x + c``), simulated without a gradient, is solved
+    exactly over each input segment whatever ``method`` says (:mod:`physmend.simulate.affine`;
+    ``exact=False``: by ``method``); where that solution leaves float range, by ``method``. A long
+    record is solved in windows side by side where they join (:mod:`physmend.simulate.windows`).
 
     ``box = (lo, hi)``, each ``(B, n_states)``: the states are held inside it
     (:func:`physmend.simulate.divergence.projected`; one shared clock), so a model that blows up
@@ -151,6 +157,20 @@ def simulate_batch(
     if method in CLOCK_METHODS and "clocks" not in options:
         options["clocks"] = own_stops(batch)  # None: one shared clock
     rhs = model.bind(p)
+    states = None
+    if exact and box is None and isinstance(rhs, BoundRhs):
+        from physmend.simulate.affine import exact_affine
+
+        states = exact_affine(rhs, batch.inputs, batch.u0 if u0 is None else u0, batch.t)
+    if states is None and box is None:
+        from physmend.simulate.windows import solve_in_windows
+
+        states = solve_in_windows(rhs, batch.inputs, batch.u0 if u0 is None else u0, batch.t, method=method,
+                                  rtol=rtol, atol=atol, options=options)
+    if states is not None:
+        x = batch.inputs.at(batch.t)
+        return Trajectories(states=states, outputs=model.outputs(states, x, p[None]),
+                            observed=model.observed(states, x, p[None]), inputs=x)
     if box is not None:
         from physmend.simulate.divergence import projected
 

@@ -73,6 +73,13 @@ def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], bat
 
     if jac is not None and sim["method"] in OWN_METHODS and "jacobian" not in options:
         options["jacobian"] = lambda t, u: jac(u, inputs_at(batch, t))
+    elif not torch.is_grad_enabled():  # a long record: in windows side by side where they join
+        from physmend.simulate.windows import solve_in_windows
+
+        states = solve_in_windows(rhs, batch.inputs, u0, batch.t, method=sim["method"], rtol=sim["rtol"],
+                                  atol=sim["atol"], options=options)
+        if states is not None:
+            return states
 
     return odeint(f, u0, batch.t, method=sim["method"], rtol=sim["rtol"], atol=sim["atol"], options=options, names=batch.ids)
 

@@ -32,6 +32,7 @@ import numpy as np
 import sympy
 import yaml
 
+from physmend.exceptions import PhysmendError
 from physmend.modeling.evaluate import abs_bars, evaluate, mse_r2
 from physmend.modeling.units import is_affine
 
@@ -60,7 +61,7 @@ _REQUIRED = ("id", "name", "template", "explanation")
 _ID = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
 
-class MechanismError(ValueError):
+class MechanismError(PhysmendError, ValueError):
     """Bad input to :func:`classify` (missing samples, mismatched lengths); states rule and value."""
 
 

@@ -251,6 +251,10 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         if any(not isinstance(r, Exception) for _, r in tried):
             kept, result = best_retrained(tried, float(mc.tolerance))
             winner = result
+            for _, other in tried:  # the candidates not kept: their fit figures are never shown
+                if other is not result:
+                    for fig in (getattr(other, "figures", None) or {}).values():
+                        plt.close(fig)
             k = len(kept)
             if isinstance(result, SourceNetwork):
                 result = None  # the source network goes on, its corrections masked to the kept set

@@ -124,16 +124,25 @@ def estimate_shifts(hybrid: Any, problem: Any, handed: list[str]) -> list[str]:
     """``name declared → estimated (share of its range)`` for each jointly estimated parameter; one
     taken to have absorbed missing physics (``handed``, :func:`physmend.ude.analysis.absorbed`) is
     flagged: its change is in the formula's target."""
+    from physmend.ude.analysis import ABSORBED_SHARE
+
     declared = {v.name: v for v in problem.model.parameters}
     out = []
     for name, value in hybrid.estimates().items():
         var = declared[name]
         lo, hi = var.bounds or (value, value)
         share = (value - float(var.value)) / (hi - lo) if hi > lo else 0.0
-        flag = (" — taken to have absorbed part of the missing physics (it moved over a quarter of its range, or "
-                "changed a corrected equation by a quarter of the network's correction): handed back to the formula"
-                if name in handed else " — calibration, left out of the formula")
-        out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({share:+.0%} of its range){flag}")
+        if name not in handed:
+            flag = " — calibration, left out of the formula"
+        elif abs(share) > ABSORBED_SHARE:
+            flag = (f" — taken to have absorbed part of the missing physics (it moved over {ABSORBED_SHARE:.0%} of "
+                    "its range): handed back to the formula")
+        else:
+            flag = (" — taken to have absorbed part of the missing physics (its move, small against its range, changed "
+                    f"a corrected equation by at least {ABSORBED_SHARE:.0%} of the network's correction there): "
+                    "handed back to the formula")
+        moved = f"{share:+.2%}" if abs(share) < 0.01 else f"{share:+.0%}"
+        out.append(f"{name} {float(var.value):.4g} → {value:.4g} ({moved} of its range){flag}")
     return out
 
 

@@ -10,6 +10,7 @@ import sys
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from physmend.exceptions import PhysmendError
 from physmend.redact import redact
 from physmend.sweep.loop import Sweep
 from physmend.sweep.parent import _finish_parent
@@ -17,7 +18,7 @@ from physmend.sweep.report import _say, summary
 from physmend.sweep.workers import _join_workers
 
 
-class NoTrialCompleted(RuntimeError):
+class NoTrialCompleted(PhysmendError, RuntimeError):
     """A sweep ended without one trial that finished training: nothing is selected (exit status 2)."""
 
 

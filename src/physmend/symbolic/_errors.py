@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from physmend.exceptions import PhysmendError
 
-class SymbolicError(ValueError):
+
+class SymbolicError(PhysmendError, ValueError):
     """Bad input to symbolic regression, an unknown back end or option, or a bad Pareto choice.
 
     The message states the rule that was broken and the actual value found.

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from physmend.exceptions import PhysmendError
 from physmend.redact import redact
 from physmend.tracking.probe import scheme_of
 
@@ -16,7 +17,7 @@ if TYPE_CHECKING:
     from mlflow.tracking import MlflowClient
 
 
-class TrackingError(ValueError):
+class TrackingError(PhysmendError, ValueError):
     """A run ID or the tracking store is not what a stage needs; the message names the run."""
 
 

@@ -25,6 +25,7 @@ import torch
 from torch import nn
 
 from physmend.device import on_cpu
+from physmend.exceptions import PhysmendError
 from physmend.modeling.compile import CompiledModel
 
 ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
@@ -38,7 +39,7 @@ ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
 }
 
 
-class UDEConfigError(ValueError):
+class UDEConfigError(PhysmendError, ValueError):
     """A ``ude.*`` setting does not fit the model; the message names the key."""
 
 

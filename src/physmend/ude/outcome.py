@@ -6,10 +6,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from physmend.exceptions import PhysmendError
 from physmend.ude.hybrid import HybridModel
 
 
-class TrainingDiverged(RuntimeError):
+class TrainingDiverged(PhysmendError, RuntimeError):
     """Training produced non-finite losses or trajectories; the message says when and why."""
 
 

@@ -30,6 +30,7 @@ from typing import Any
 import torch
 
 from physmend.config_check import MAX_LAYERS, MAX_UNITS
+from physmend.exceptions import PhysmendError
 from physmend.modeling.safe_parse import QUOTE, quoted
 from physmend.ude.hybrid import ACTIVATIONS, HybridSpec
 
@@ -43,7 +44,7 @@ WEIGHTS_SLACK = 2**20
 UNITS = ("equation", "state")
 
 
-class ArtifactError(ValueError):
+class ArtifactError(PhysmendError, ValueError):
     """A run's model artifacts are missing or do not fit the model; the message names the file."""
 
 

@@ -85,7 +85,7 @@ def test_a_sweep_on_a_tracking_server_is_quiet_and_its_best_trial_shows_in_the_m
     number = int(best.data.tags["physmend.trial_number"])
     assert best.info.run_id == sweep.data.tags["physmend.best_run_id"] == sweep.data.tags["physmend.selected_run_id"]
     assert best.info.run_name == f"★ trial-{number:04d} val.rmse={value:.4g} (best, selected)"
-    assert sweep.info.run_name.startswith(f"★ {value:.4g} val.rmse · trial-{number:04d} · sweep ")
+    assert sweep.info.run_name.startswith(f"★ #{number} {value:.4g} val.rmse · trial-{number:04d} · sweep ")
     assert sweep.data.metrics["val.rmse"] == pytest.approx(value)  # the sweep run's own metric: the best's
     others = [r for r in trials if r.info.run_id != best.info.run_id]
     assert all(r.info.run_name.startswith("trial-") and "★" not in r.info.run_name for r in others)

@@ -10,7 +10,7 @@ the store, so the one field physmend can make speak in the default view is the r
 - the sweep's automatic best ``★ trial-0002 val.rmse=0.0387 (best, selected)``; a trial a person
   selected with ``physmend select`` ``▶ trial-0005 val.rmse=0.0431 (selected)``;
 - the sweep run itself (the row shown while its trials are collapsed)
-  ``sweep ★ trial-0002 val.rmse=0.0387 · <study>``; it also carries ``val.rmse`` (the best's) as
+  ``★ #2 0.0387 val.rmse · trial-0002 · sweep <study>``; it also carries ``val.rmse`` (the best's) as
   its own metric, the best trial's run ID as a tag and a link to it in its description.
 
 The saved view :data:`VIEW_KEY` (an experiment tag ``mlflow.sharedViewState.<key>``, MLflow's own
@@ -56,13 +56,14 @@ def trial_name(number: int, value: float | None, *, best: bool = False, selected
 
 
 def sweep_name(study: str, best: tuple[int, float | None] | None, selected: int | None = None) -> str:
-    """The sweep run's name: ``★ 0.0387 val.rmse · trial-0002 · sweep study`` (``best``: its number
-    and value; ``selected``: the number of a selected trial other than the best). The value comes
-    first: the runs table's name column shows about 17 characters before it cuts."""
+    """The sweep run's name: ``★ #2 0.0387 val.rmse · trial-0002 · sweep study`` (``best``: its number
+    and value; ``selected``: the number of a selected trial other than the best). The best trial's
+    number and value come first: the runs table's name column shows about 17 characters before it
+    cuts (``★ #2 0.0387 val.r…``)."""
     if best is None:
         return f"sweep-{study}"
     number, value = best
-    text = f"{BEST_MARK} " + (f"{value:.4g} val.rmse · " if value is not None else "") + f"trial-{number:04d}"
+    text = f"{BEST_MARK} #{number} " + (f"{value:.4g} val.rmse · " if value is not None else "") + f"trial-{number:04d}"
     if selected is not None and selected != number:
         text += f" · {SELECTED_MARK} trial-{selected:04d} selected"
     return f"{text} · sweep {study}"

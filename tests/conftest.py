@@ -100,3 +100,14 @@ def reset_mlflow() -> Iterator[None]:
     while mlflow.active_run() is not None:
         mlflow.end_run()
     mlflow.set_tracking_uri(None)
+
+
+@pytest.fixture(autouse=True)
+def close_figures() -> Iterator[None]:
+    """After every test: the matplotlib figures it left open (results a test inspects and drops)
+    closed, so one test's figures do not pile up in the next one's worker."""
+    yield
+    import sys
+
+    if "matplotlib.pyplot" in sys.modules:
+        sys.modules["matplotlib.pyplot"].close("all")

@@ -155,8 +155,17 @@ def retrain_sets(work: Any, problem: Any, todo: list[list[str]], mc: Any, train:
         longer = OmegaConf.merge(work, OmegaConf.from_dotlist(longer_settings(work, mc)))
         for i, r in zip(again, retrain_all(longer, problem, [todo[i] for i in again], train, n)):
             if not isinstance(r, BaseException) and r.val_rmse < done[i].val_rmse:
-                done[i] = r
+                done[i], r = r, done[i]
+            _close_figures(r)  # the run not kept: its fit figures are never shown
     return done, again
+
+
+def _close_figures(result: Any) -> None:
+    """Close the matplotlib figures of a training result that is not kept (pyplot holds them)."""
+    import matplotlib.pyplot as plt
+
+    for fig in (getattr(result, "figures", None) or {}).values():
+        plt.close(fig)
 
 
 def with_held_out(result: Any, problem: Any, work: Any) -> Any:
@@ -253,8 +262,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             winner = result
             for _, other in tried:  # the candidates not kept: their fit figures are never shown
                 if other is not result:
-                    for fig in (getattr(other, "figures", None) or {}).values():
-                        plt.close(fig)
+                    _close_figures(other)
             k = len(kept)
             if isinstance(result, SourceNetwork):
                 result = None  # the source network goes on, its corrections masked to the kept set

@@ -167,3 +167,22 @@ def test_a_mask_candidate_without_a_validation_rmse_says_why_in_its_line() -> No
     reason = TrainingDiverged("whole-trajectory simulation of the hybrid failed:\n the hybrid diverged in 'h2'")
     assert _val_text(reason) == ("nan (TrainingDiverged: whole-trajectory simulation of the hybrid failed: the hybrid "
                                  "diverged in 'h2')")
+
+
+def test_a_ctrl_c_inside_an_extension_import_is_an_interruption_not_a_failure() -> None:
+    from physmend.sweep.restart import interrupted
+
+    # what a compiled extension raises when Ctrl-C lands during its initialisation (pybind11: an
+    # ImportError "initialization failed" raised from the KeyboardInterrupt), then wrapped once more
+    try:
+        try:
+            try:
+                raise KeyboardInterrupt
+            except KeyboardInterrupt as stop:
+                raise ImportError("initialization failed") from stop
+        except ImportError:
+            raise RuntimeError("trial failed") from None
+    except RuntimeError as wrapped:
+        assert interrupted(wrapped)
+    assert not interrupted(ImportError("initialization failed"))
+    assert not interrupted(ValueError("lr must be > 0"))

@@ -19,7 +19,7 @@ from physmend.redact import redact
 from physmend.config import ConfigError
 from physmend.sweep.configs import TrialConfigs
 from physmend.sweep.report import EpochProgress, Reporter, _log_result, _say, _show
-from physmend.sweep.restart import RESTARTS_ATTR, one_line
+from physmend.sweep.restart import RESTARTS_ATTR, interrupted, one_line
 from physmend.sweep.settings import Settings, shape_keys
 from physmend.sweep.space import SearchSpace
 from physmend.sweep.storage import REASON_ATTR, RUN_ID_ATTR, Tally, WORKER_ATTR, _uncounted, tally
@@ -224,6 +224,8 @@ class Sweep:
                                              report=lambda j, epoch, row, todo=todo: reporters[todo[j]](epoch, row),
                                              final_eval="batched", figures=self.settings.figures)
             except Exception as exc:  # noqa: BLE001 - the whole stack failed: each trial's outcome
+                if interrupted(exc):  # Ctrl-C inside a library's import or C code
+                    raise KeyboardInterrupt from exc
                 got = [exc] * len(todo)
             again = []
             for i, result in zip(todo, got):
@@ -359,6 +361,9 @@ class Sweep:
         try:
             return self._train_logged(trial, values, cfg, problem, holder)
         except Exception as exc:  # noqa: BLE001 - diverged, solver failure, anything: FAIL, sweep goes on
+            if interrupted(exc):  # Ctrl-C inside a library's import or C code, reported as its own error
+                self._mark_child(holder.get("run_id"), "FAIL", error="interrupted (KeyboardInterrupt)")
+                raise KeyboardInterrupt from exc
             self._mark_child(holder.get("run_id"), "FAIL")
             return Outcome(trial.number, "FAIL", run_id=holder.get("run_id"), reason=f"{type(exc).__name__}: {exc}")
         except KeyboardInterrupt:

@@ -143,3 +143,18 @@ class Attempts:
             return exc
         out.__cause__ = exc
         return out
+
+
+def interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` came from a Ctrl-C (a ``KeyboardInterrupt`` in its cause or context chain): a
+    signal that lands while a compiled extension initialises comes back as that extension's
+    ``ImportError`` ("initialization failed", raised from the interrupt) — no failure of the trial,
+    and never restarted."""
+    seen: set[int] = set()
+    cur: BaseException | None = exc
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return True
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return False

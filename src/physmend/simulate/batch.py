@@ -157,31 +157,26 @@ def simulate_batch(
     if method in CLOCK_METHODS and "clocks" not in options:
         options["clocks"] = own_stops(batch)  # None: one shared clock
     rhs = model.bind(p)
+    start = batch.u0 if u0 is None else u0
     states = None
     if exact and box is None and isinstance(rhs, BoundRhs):
         from physmend.simulate.affine import exact_affine
 
-        states = exact_affine(rhs, batch.inputs, batch.u0 if u0 is None else u0, batch.t)
+        states = exact_affine(rhs, batch.inputs, start, batch.t)
     if states is None and box is None:
         from physmend.simulate.windows import solve_in_windows
 
-        states = solve_in_windows(rhs, batch.inputs, batch.u0 if u0 is None else u0, batch.t, method=method,
-                                  rtol=rtol, atol=atol, options=options)
-    if states is not None:
-        x = batch.inputs.at(batch.t)
-        return Trajectories(states=states, outputs=model.outputs(states, x, p[None]),
-                            observed=model.observed(states, x, p[None]), inputs=x)
-    if box is not None:
-        from physmend.simulate.divergence import projected
+        states = solve_in_windows(rhs, batch.inputs, start, batch.t, method=method, rtol=rtol, atol=atol, options=options)
+    if states is None:
+        if box is not None:
+            from physmend.simulate.divergence import projected
 
-        rhs = projected(rhs, box[0], box[1])
+            rhs = projected(rhs, box[0], box[1])
 
-    def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return rhs(u, inputs_at(batch, t))
+        def f(t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+            return rhs(u, inputs_at(batch, t))
 
-    states = odeint(
-        f, batch.u0 if u0 is None else u0, batch.t, method=method, rtol=rtol, atol=atol, options=options, names=batch.ids
-    )
+        states = odeint(f, start, batch.t, method=method, rtol=rtol, atol=atol, options=options, names=batch.ids)
     x = batch.inputs.at(batch.t)
     return Trajectories(
         states=states,

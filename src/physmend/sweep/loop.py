@@ -361,13 +361,13 @@ class Sweep:
         try:
             return self._train_logged(trial, values, cfg, problem, holder)
         except Exception as exc:  # noqa: BLE001 - diverged, solver failure, anything: FAIL, sweep goes on
-            if interrupted(exc):  # Ctrl-C inside a library's import or C code, reported as its own error
-                self._mark_child(holder.get("run_id"), "FAIL", error="interrupted (KeyboardInterrupt)")
+            if interrupted(exc):  # Ctrl-C inside a library's import, C code or a store write
+                self._kill_child(holder.get("run_id"), "interrupted (KeyboardInterrupt)")
                 raise KeyboardInterrupt from exc
             self._mark_child(holder.get("run_id"), "FAIL")
             return Outcome(trial.number, "FAIL", run_id=holder.get("run_id"), reason=f"{type(exc).__name__}: {exc}")
         except KeyboardInterrupt:
-            self._mark_child(holder.get("run_id"), "FAIL", error="interrupted (KeyboardInterrupt)")
+            self._kill_child(holder.get("run_id"), "interrupted (KeyboardInterrupt)")
             raise
 
     @contextlib.contextmanager
@@ -477,8 +477,9 @@ class Sweep:
         try:
             run = self.store.client.get_run(run_id)
             self.store.client.set_tag(run_id, sel.TRIAL_STATE_TAG, "FAIL")
-            if run.info.status == "RUNNING":
+            if run.info.status == "RUNNING" or ERROR_TAG not in run.data.tags:
                 self.store.client.set_tag(run_id, ERROR_TAG, redact(reason))
+            if run.info.status == "RUNNING":
                 self.store.client.set_terminated(run_id, "KILLED")
         except Exception:  # noqa: BLE001 - the run may be gone; the study is the record
             pass

@@ -120,9 +120,18 @@ def stage_run(
         try:
             yield handle
         except BaseException as exc:
-            mlflow.set_tag(ERROR_TAG, redact(f"{type(exc).__name__}: {exc}")[:5000])
-            mlflow.log_text(redact("".join(traceback.format_exception(exc))), "error.txt")
-            mlflow.end_run(status="KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
+            # a Ctrl-C that lands inside a store write can leave that write's session broken: the
+            # error tag and traceback are best effort, the run's end is always attempted
+            try:
+                mlflow.set_tag(ERROR_TAG, redact(f"{type(exc).__name__}: {exc}")[:5000])
+                mlflow.log_text(redact("".join(traceback.format_exception(exc))), "error.txt")
+            except Exception:  # noqa: BLE001 - never mask the error that ended the stage
+                pass
+            finally:
+                try:
+                    mlflow.end_run(status="KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
+                except Exception:  # noqa: BLE001 - as above; the caller may still end it by ID
+                    pass
             raise
 
 

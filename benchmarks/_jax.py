@@ -116,8 +116,8 @@ def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
 
     from physmend.modeling.compile import BoundRhs
     from physmend.ude.hybrid import HybridModel
-    from physmend.ude.reference import _train_mask, reference
-    from physmend.ude.shooting import _initial_segments, _output_spread, pinned_starts, plan_shooting
+    from physmend.ude.reference import train_mask, reference
+    from physmend.ude.shooting import initial_segments, output_spread, pinned_starts, plan_shooting
     from physmend.ude.spec import build_spec
     from physmend.ude.timescale import resolve_times
 
@@ -129,7 +129,7 @@ def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
         raise ValueError("the JAX peer takes states, inputs and parameters as network inputs, not observed variables")
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
     plan = plan_shooting(problem, ref.batch, cfg)
-    seg0 = _initial_segments(problem, ref, plan)
+    seg0 = initial_segments(problem, ref, plan)
     pinned, lo, hi = pinned_starts(ref.batch, plan, problem.compiled.state_names)
     p = ref.batch.params[plan.exp_index]  # (S, P) as declared
     cm = problem.compiled
@@ -141,7 +141,7 @@ def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
     C, D, e = affine_form(lambda u, x: cm.outputs(u[None], x[None], p[None])[0], seg0, x0)
     coef = (hybrid.equation_coefficients(p) if hybrid.coefficients is not None
             else torch.ones(p.shape[0], len(spec.corrected), dtype=p.dtype))
-    mask = _train_mask(problem, ref.batch)
+    mask = train_mask(problem, ref.batch)
     state_scale = ref.states[mask].std(0).clamp_min(1e-3)
     has_next = plan.next_of >= 0
     layers = [m for m in hybrid.net if isinstance(m, torch.nn.Linear)]
@@ -155,7 +155,7 @@ def setup(cfg: Any, problem: Any, seed: int) -> dict[str, Any]:
         "x_half": plan.x_half.permute(1, 0, 2).contiguous().numpy(),  # (S, 2K+1, m)
         "seg0": seg0.numpy(), "fixed_first": ref.batch.u0[plan.exp_index].numpy(), "pinned": pinned.numpy(),
         "lo": lo.numpy(), "hi": hi.numpy(), "state_scale": state_scale.numpy(),
-        "out_std": _output_spread(ref.batch.obs[mask]).numpy(),
+        "out_std": output_spread(ref.batch.obs[mask]).numpy(),
         "obs": tuple(v.numpy() for v in (plan.obs_s, plan.obs_k, plan.obs_w, plan.obs_j, plan.obs_y)),
         "src": np.nonzero(has_next.numpy())[0], "dst": plan.next_of[has_next].numpy(),
         "params_seg": p,

@@ -14,7 +14,7 @@ from physmend.config import compose
 from physmend.problem import load_problem
 from physmend.ude.drive import drivable, hybrid_drive
 from physmend.ude.hybrid import HybridModel
-from physmend.ude.shooting import BOX_MARGIN, _initial_segments, plan_shooting, rk4_segments
+from physmend.ude.shooting import BOX_MARGIN, initial_segments, plan_shooting, rk4_segments
 from physmend.ude.spec import build_spec
 from physmend.ude.timescale import resolve_times
 from physmend.ude.train import reference
@@ -39,7 +39,7 @@ def _setup(project: Path, extra: list[str]):  # noqa: ANN202
         for prm in hybrid.net.parameters():
             prm.add_(0.3 * torch.randn_like(prm))
     plan = plan_shooting(problem, ref.batch, cfg)
-    u0 = _initial_segments(problem, ref, plan)
+    u0 = initial_segments(problem, ref, plan)
     return cfg, problem, ref, hybrid, plan, u0
 
 

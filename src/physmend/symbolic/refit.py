@@ -86,8 +86,8 @@ class _Shooting:
 
     def __init__(self, problem: Any, cfg: Any, ref: Any, names: Sequence[str], starts: torch.Tensor | None = None) -> None:
         from physmend.ude.hybrid import HybridModel, HybridSpec
-        from physmend.ude.reference import _train_mask
-        from physmend.ude.shooting import _initial_segments, _output_spread, pinned_starts, plan_shooting
+        from physmend.ude.reference import train_mask
+        from physmend.ude.shooting import initial_segments, output_spread, pinned_starts, plan_shooting
         from physmend.ude.warmstart import forced_trajectories, segment_starts
 
         compiled = problem.compiled
@@ -98,18 +98,18 @@ class _Shooting:
         self.names = list(names)
         self.idx = [compiled.parameter_names.index(n) for n in names]
         self.plan = plan = plan_shooting(problem, ref.batch, cfg)
-        seg0 = _initial_segments(problem, ref, plan) if starts is None else starts.clone()
+        seg0 = initial_segments(problem, ref, plan) if starts is None else starts.clone()
         if starts is None and str(cfg.train.get("warm_start", "auto")) != "none":  # as training: from the forced records
             spec = HybridSpec(corrected=[], in_states=compiled.state_names[:1], in_observed=[], in_inputs=[],
                               in_parameters=[], widths=[], activation="tanh", mean=[0.0], std=[1.0], out_scale=[])
             forced = forced_trajectories(problem, ref.batch, HybridModel(compiled, spec, problem.dtype), plan.dt)
             if forced is not None:
                 seg0 = segment_starts(forced, plan.exp_index, plan.starts, seg0)
-        mask = _train_mask(problem, ref.batch)
+        mask = train_mask(problem, ref.batch)
         self.seg0 = seg0
         self.fixed_first = ref.batch.u0[plan.exp_index]
         self.scale = ref.states[mask].std(0).clamp_min(1e-3)  # (n,)
-        self.out_std = _output_spread(ref.batch.obs[mask])
+        self.out_std = output_spread(ref.batch.obs[mask])
         self.params = ref.batch.params[plan.exp_index]  # (S, n_params)
         self.S, self.n = seg0.shape
         self.K = len(self.idx)

@@ -16,7 +16,7 @@ from physmend.problem import Problem
 from physmend.simulate import Batch, make_batch
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import checkpoint_problem, hybrid_states
-from physmend.ude.reference import _sim_opts, _train_mask
+from physmend.ude.reference import _sim_opts, train_mask
 
 
 @dataclass
@@ -55,7 +55,7 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
         rhs = hybrid.rhs(p)
         states = hybrid_states(hybrid, problem, batch, _sim_opts(cfg))
         x = batch.inputs.at(batch.t)
-        mask = _train_mask(problem, batch)
+        mask = train_mask(problem, batch)
         pp = p[None].expand(states.shape[0], -1, -1)
         du = rhs(states, x)
         corr = hybrid.corrections(states, x, p)

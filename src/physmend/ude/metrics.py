@@ -17,7 +17,7 @@ from physmend.simulate import Batch, SimulationError, make_batch
 from physmend.simulate.initial import estimate_initial, has_unknown
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.reference import _sim_opts, _train_mask, _val_mask, held_out_apart, simulate_with
+from physmend.ude.reference import _sim_opts, train_mask, _val_mask, held_out_apart, simulate_with
 
 
 def _pooled(err: torch.Tensor, mask: torch.Tensor) -> float:
@@ -46,11 +46,11 @@ def metrics_of(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, flo
     err = torch.where(measured & ~torch.isfinite(y), torch.inf, y - batch.obs)
     units = {problem.model.units.get(o, "") for o in problem.model.output_names}
     if len(units) > 1:
-        scale = torch.nan_to_num(batch.obs[_train_mask(problem, batch)], nan=0.0).std(0).clamp_min(1e-12)
+        scale = torch.nan_to_num(batch.obs[train_mask(problem, batch)], nan=0.0).std(0).clamp_min(1e-12)
         scaled = err / scale
     else:
         scaled = err
-    tm, vm = _train_mask(problem, batch), _val_mask(problem, batch)
+    tm, vm = train_mask(problem, batch), _val_mask(problem, batch)
     metrics = {"val.rmse": _pooled(scaled, vm), "train.rmse": _pooled(scaled, tm)}
     is_test = torch.tensor([e.role == "test" for e in problem.experiments])
     test = is_test[None, :].expand_as(tm)

@@ -335,7 +335,7 @@ def on_axis(values: torch.Tensor, t_from: torch.Tensor, t_to: torch.Tensor) -> t
     return torch.where(outside.reshape(-1, *([1] * (values.dim() - 1))), torch.nan, out)
 
 
-def _train_mask(problem: Problem, batch: Batch) -> torch.Tensor:
+def train_mask(problem: Problem, batch: Batch) -> torch.Tensor:
     """``(T, B)`` True where a time belongs to a training sample (train role, before the split)."""
     roles = torch.tensor([e.role == "train" for e in problem.experiments])
     return (batch.t[:, None] < batch.split_time[None, :]) & roles[None, :]

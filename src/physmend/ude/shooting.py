@@ -170,7 +170,7 @@ def segments_finite(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], u
         return bool(torch.isfinite(rk4_segments(rhs, u0, plan, box)).all())
 
 
-def _initial_segments(problem: Problem, ref: Reference, plan: Shooting) -> torch.Tensor:
+def initial_segments(problem: Problem, ref: Reference, plan: Shooting) -> torch.Tensor:
     """Segment starts from the model as written, with measured states set to their measurements
     (an output ``g(p)·x`` divided by its factor)."""
     t = ref.batch.t
@@ -213,7 +213,7 @@ def pinned_starts(batch: Batch, plan: Shooting, state_names: Sequence[str]) -> t
     return pinned, lo, hi
 
 
-def _output_spread(obs: torch.Tensor) -> torch.Tensor:
+def output_spread(obs: torch.Tensor) -> torch.Tensor:
     """Standard deviation of each output over finite training samples ``obs (N, k)``: ``(k,)``."""
     cols = []
     for c in obs.T:

@@ -12,7 +12,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.ude.hybrid import HybridSpec, UDEConfigError, der_coefficients, match_names
-from physmend.ude.reference import Reference, _stats, _train_mask
+from physmend.ude.reference import Reference, _stats, train_mask
 
 
 MIN_PARAMETER_VALUES = 3
@@ -107,7 +107,7 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
         raise UDEConfigError("ude.inputs selects no network input; enable states, inputs, observed or parameters")
     estimated = [v.name for v in model.parameters if v.uncertain] if bool(cfg.train.estimate_parameters) else []
     widths = [int(ude.width)] * int(ude.depth)
-    mask = _train_mask(problem, ref.batch)
+    mask = train_mask(problem, ref.batch)
     cm = problem.compiled
     feats = [ref.states[..., [cm.state_names.index(n) for n in in_states]]]
     if in_observed:

@@ -24,8 +24,8 @@ from physmend.ude.stack_net import _Net, _pad_networks, _write_back
 from physmend.ude.stack_plan import _plan_key, _time_grid_parts
 from physmend.ude.metrics import LEAVE_MARGIN, _evaluate, checkpoint_problem, guarded, metrics_of
 from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.reference import Reference, _train_mask, simulate_with
-from physmend.ude.shooting import Shooting, _equation_scale, _output_spread, chained_starts, pinned_starts, rk4_segments, BOX_MARGIN
+from physmend.ude.reference import Reference, train_mask, simulate_with
+from physmend.ude.shooting import Shooting, _equation_scale, output_spread, chained_starts, pinned_starts, rk4_segments, BOX_MARGIN
 from physmend.ude.schedule import _chain
 from physmend.ude.warmstart import Forced, fit_models, recall_derived, remember_derived, warm_key
 
@@ -90,13 +90,13 @@ class _Stack:
         self.mean = self.template.mean
         self.std = self.template.std
         # shared pieces of the training solve (as in train())
-        tm = _train_mask(problem, ref.batch)
+        tm = train_mask(problem, ref.batch)
         self.fixed_first = ref.batch.u0[plan.exp_index]
         self.pinned, self.lo, self.hi = pinned_starts(ref.batch, plan, problem.compiled.state_names)
         self.state_scale = ref.states[tm].std(0).clamp_min(1e-3)
         self.box = members[0].hybrid.spec.box(BOX_MARGIN, problem.dtype)  # one reference: one range for all
         self.initial_estimates: dict[tuple[str, ...], torch.Tensor] = {}  # as HybridModel.initial_estimates
-        self.out_std = _output_spread(ref.batch.obs[tm])
+        self.out_std = output_spread(ref.batch.obs[tm])
         self.params_seg = ref.batch.params[plan.exp_index]
         self.has_next = plan.next_of >= 0
         self.cont_w = float(cfg.train.continuity_weight)

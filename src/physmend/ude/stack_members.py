@@ -13,7 +13,7 @@ from physmend.ude.hybrid import HybridModel, UDEConfigError
 from physmend.ude.stack import _Member, _Stack
 from physmend.ude.reference import Reference
 from physmend.ude.schedule import _chain, _lr_schedule
-from physmend.ude.shooting import Shooting, _initial_segments, chained_starts
+from physmend.ude.shooting import Shooting, initial_segments, chained_starts
 from physmend.ude.spec import build_spec
 from physmend.ude.warmstart import Forced, forced_trajectories, recall, remember, segment_starts, warm_key, warm_start
 
@@ -24,7 +24,7 @@ def _prepare(cfg: DictConfig, problem: Problem, ref: Reference, plan: Shooting, 
     torch.manual_seed(int(cfg.get("seed", 0)))
     spec = build_spec(cfg, problem, ref)
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
-    seg0 = _initial_segments(problem, ref, plan)
+    seg0 = initial_segments(problem, ref, plan)
     chain = _chain(cfg.train)
     forced = warm_start(hybrid, problem, ref.batch, cfg) if warm else None
     if forced is not None:

@@ -62,9 +62,9 @@ from physmend.ude.stack_plan import _setup
 from physmend.ude.metrics import _evaluate
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.polish import Polisher, fit_at, polish_iterations, worth_polishing
-from physmend.ude.reference import Reference, _sim_opts, _train_mask
+from physmend.ude.reference import Reference, _sim_opts, train_mask
 from physmend.ude.schedule import _lr_schedule, cycle_of, fit_gain, fit_progressed, restarts, stops_at
-from physmend.ude.shooting import BOX_MARGIN, Shooting, _output_spread, noise_fit, pinned_starts, segments_finite
+from physmend.ude.shooting import BOX_MARGIN, Shooting, output_spread, noise_fit, pinned_starts, segments_finite
 from physmend.ude.warmstart import Forced, recall_derived, remember_derived
 
 
@@ -337,8 +337,8 @@ def _run(members: list[_Member], problem: Problem, ref: Reference, plan: Shootin
     polish = polish_iterations(tc)
     ready = [mem for mem in members if mem.outcome is None and mem.best is not None]
     if polish > 0 and ready:  # a model whose training fit is at the sensor noise has nothing to polish
-        tm = _train_mask(problem, ref.batch)
-        noise = noise_fit(ref.batch, tm, _output_spread(ref.batch.obs[tm]))
+        tm = train_mask(problem, ref.batch)
+        noise = noise_fit(ref.batch, tm, output_spread(ref.batch.obs[tm]))
         ready = [mem for mem in ready if mem.best is not None and worth_polishing(fit_at(mem.history, mem.best[0]), noise)]
     if polish > 0 and ready:  # every model with a checkpoint, from its best one, as train() polishes
         for mem in ready:

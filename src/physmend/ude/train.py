@@ -30,9 +30,9 @@ from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import _evaluate, checkpoint_problem
 from physmend.ude.outcome import TrainResult, TrainingDiverged
 from physmend.ude.polish import fit_at, polish_iterations, polish_lbfgs, worth_polishing
-from physmend.ude.reference import _sim_opts, _train_mask, reference
+from physmend.ude.reference import _sim_opts, train_mask, reference
 from physmend.ude.schedule import _chain, cycle_of, fit_gain, fit_progressed, lr_factor, restarts, stops_at
-from physmend.ude.shooting import _equation_scale, _initial_segments, _output_spread, chained_starts, noise_fit, plan_shooting, rk4_segments
+from physmend.ude.shooting import _equation_scale, initial_segments, output_spread, chained_starts, noise_fit, plan_shooting, rk4_segments
 from physmend.ude.spec import build_spec
 from physmend.ude.warmstart import segment_starts, warm_start
 
@@ -74,7 +74,7 @@ def _train(cfg: Any, problem: Problem, report: Callable[[int, dict[str, float]],
     hybrid = HybridModel(problem.compiled, spec, problem.dtype)
     plan = plan_shooting(problem, ref.batch, cfg)
     check_budget(plan, problem, [cfg])
-    seg0 = _initial_segments(problem, ref, plan)
+    seg0 = initial_segments(problem, ref, plan)
     initial = copy.deepcopy(hybrid.state_dict())
     forced = warm_start(hybrid, problem, ref.batch, cfg)
     if forced is not None:
@@ -92,10 +92,10 @@ def _train(cfg: Any, problem: Problem, report: Callable[[int, dict[str, float]],
     if _chain(tc) and forced is not None:
         seg0 = chained_starts(hybrid.rhs(hybrid.parameters_for(params_seg)), torch.where(plan.first[:, None], fixed_first, seg0), plan,
                               keep=forced.measured)
-    state_scale = ref.states[_train_mask(problem, ref.batch)].std(0).clamp_min(1e-3)
+    state_scale = ref.states[train_mask(problem, ref.batch)].std(0).clamp_min(1e-3)
     # segment starts are trained as offsets in units of each state's spread (Adam steps are ~lr)
     free = torch.nn.Parameter(torch.zeros_like(seg0))
-    out_std = _output_spread(ref.batch.obs[_train_mask(problem, ref.batch)])
+    out_std = output_spread(ref.batch.obs[train_mask(problem, ref.batch)])
     groups = [{"params": list(hybrid.net.parameters()), "weight_decay": float(tc.weight_decay)},
               {"params": [free], "weight_decay": 0.0}]
     if spec.estimated:
@@ -205,7 +205,7 @@ def _train(cfg: Any, problem: Problem, report: Callable[[int, dict[str, float]],
         if (epoch % eval_every == 0 or epoch % epochs == 0) and checkpoint(epoch, float(loss.detach()), float(fit.detach())):
             break
     if best is not None and polish > 0 and worth_polishing(fit_at(history, best[0]),
-                                                           noise_fit(ref.batch, _train_mask(problem, ref.batch), out_std)):
+                                                           noise_fit(ref.batch, train_mask(problem, ref.batch), out_std)):
         hybrid.load_state_dict(best[1])
         since_best = 0
         polish_lbfgs(objective, [*hybrid.net.parameters(), free, *([hybrid.est_raw] if spec.estimated else [])],

@@ -24,7 +24,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("ude",),
     ("symbolic",),
     ("tracking",),
-    ("sweep",),
+    ("sweep", "masking"),
     ("stages",),
     ("api",),
     ("errors", "cli", "__init__", "__main__"),

@@ -13,8 +13,9 @@ from omegaconf import OmegaConf
 
 from physmend.config import compose
 from physmend.simulate.errors import SimulationError
-from physmend.sweep.report import Reporter, divergence
+from physmend.sweep.report import Reporter
 from physmend.sweep.restart import RESTARTS_ATTR, Attempts, describe, diverged, one_line, restart_changes
+from physmend.sweep.summary import divergence
 from physmend.ude import TrainingDiverged, UDEConfigError
 
 
@@ -162,10 +163,10 @@ def test_a_diverging_trial_is_restarted_and_ends_finished(user_project: Path, mo
 
 
 def test_a_mask_candidate_without_a_validation_rmse_says_why_in_its_line() -> None:
-    from physmend.stages.mask import _val_text
+    from physmend.masking.choice import val_text
 
     reason = TrainingDiverged("whole-trajectory simulation of the hybrid failed:\n the hybrid diverged in 'h2'")
-    assert _val_text(reason) == ("nan (TrainingDiverged: whole-trajectory simulation of the hybrid failed: the hybrid "
+    assert val_text(reason) == ("nan (TrainingDiverged: whole-trajectory simulation of the hybrid failed: the hybrid "
                                  "diverged in 'h2')")
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sympy as sp
 
 from physmend.modeling.evaluate import n_constants
-from physmend.stages.symbolic import name_constants
+from physmend.symbolic.constants import name_constants
 
 
 def test_an_expanded_common_factor_is_one_constant() -> None:
@@ -38,7 +38,7 @@ def test_a_formula_whose_constants_trade_off_is_multiplied_out() -> None:
     or would grow past half its size again, stays as found."""
     import sympy as sp
 
-    from physmend.stages.symbolic import identifiable, name_constants
+    from physmend.symbolic.constants import identifiable, name_constants
 
     i, w, T, Tr = sp.symbols("field.i shaft.w T Tr")
     found = -33.91 * i * w * (0.002406 * i + 0.00126) - 0.2486

@@ -8,7 +8,7 @@ import pytest
 
 from physmend.config import compose
 from physmend.problem import load_problem
-from physmend.stages.symbolic import equation_unit
+from physmend.symbolic.targets import equation_unit
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

@@ -10,7 +10,8 @@ import sympy as sp
 
 from physmend.config import ConfigError, compose
 from physmend.symbolic import fit
-from physmend.symbolic.operators import check_operators, operon_symbols, priced_size, pysr_operators
+from physmend.config_check import check_operators
+from physmend.symbolic.operators import operon_symbols, priced_size, pysr_operators
 
 DEFAULT = {"add": 1, "sub": 1, "mul": 1, "div": 1, "square": 1, "abs": 1, "sqrt": 1}
 EXTENDED = {**DEFAULT, "sign": 2, "min": 2, "max": 2, "exp": 2, "log": 2, "tanh": 2}

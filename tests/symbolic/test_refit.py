@@ -13,7 +13,7 @@ import torch
 
 from physmend.config import compose
 from physmend.modeling import Correction
-from physmend.stages.symbolic import corrected_metrics, corrected_problem, refit, simulate_corrected, with_parameters
+from physmend.symbolic.corrected import corrected_metrics, corrected_problem, refit, simulate_corrected, with_parameters
 from physmend.symbolic.refit import _Shooting, constant_bounds, refit_constants
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0",

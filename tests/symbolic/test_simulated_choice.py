@@ -16,7 +16,7 @@ import sympy as sp
 from physmend.config import compose
 from physmend.modeling import Correction
 from physmend.problem import load_problem
-from physmend.stages.symbolic import choose_by_simulation, tree_size
+from physmend.symbolic.choice import choose_by_simulation, tree_size
 from physmend.symbolic import Candidate, ParetoFront
 from physmend.ude.timescale import resolve_times
 
@@ -40,7 +40,7 @@ def test_the_unmeasured_equation_gets_the_form_that_reproduces_the_records(user_
                                     for name, e in forms.items()])
 
     def build(i: int) -> list[Correction]:
-        from physmend.stages.symbolic import name_constants
+        from physmend.symbolic.constants import name_constants
 
         expr, consts = name_constants(front.candidates[i].expr)
         return [Correction(state="cart.v", term=sp.sstr(expr), constants=consts, unit="N")]
@@ -63,7 +63,7 @@ def test_a_catalogue_form_that_is_one_value_along_the_samples_is_not_a_candidate
     constant is offered (and a sign that does change is)."""
     import numpy as np
 
-    from physmend.stages.symbolic import catalogue_candidates
+    from physmend.symbolic.choice import catalogue_candidates
 
     rng = np.random.default_rng(0)
     n = 400

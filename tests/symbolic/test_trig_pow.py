@@ -12,8 +12,8 @@ from physmend.config import ConfigError, compose
 from physmend.symbolic import fit
 from physmend.symbolic import _operon, _pysr
 from physmend.symbolic._sindy import library
-from physmend.symbolic.operators import (
-    KNOWN, OperatorError, check_operators, operators_for, operon_symbols, priced_size, pysr_operators)
+from physmend.config_check import KNOWN, OperatorError, check_operators
+from physmend.symbolic.operators import operators_for, operon_symbols, priced_size, pysr_operators
 
 DEFAULT = {"add": 1, "sub": 1, "mul": 1, "div": 1, "square": 1, "abs": 1, "sqrt": 1, "sin": 2, "cos": 2}
 FAST = {"generations": 30, "population_size": 200}

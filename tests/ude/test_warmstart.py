@@ -116,7 +116,7 @@ def test_formulas_are_judged_by_the_recordings(room_project: Path, monkeypatch: 
     5-constant polynomial that explains no more loses on the BIC."""
     import sympy as sp
 
-    from physmend.stages.symbolic import catalogue_candidates, choose_by_recordings
+    from physmend.symbolic.choice import catalogue_candidates, choose_by_recordings
     from physmend.symbolic import Candidate, ParetoFront
     from physmend.ude.rates import recorded_rates
 

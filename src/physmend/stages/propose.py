@@ -17,7 +17,6 @@ from typing import Any
 import numpy as np
 import sympy as sp
 import torch
-from omegaconf import OmegaConf
 
 STAGE = "propose"
 MIN_MECHANISM_R2 = 0.9  # a mechanism is suggested only when its form reproduces the term this well

@@ -8,7 +8,6 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
-import sympy
 
 from physmend.symbolic._errors import BackendUnavailable, SymbolicError
 from physmend.modeling.evaluate import display, evaluate, mse_r2
@@ -154,7 +153,7 @@ def fit(
     X, y, names, units = _check_data(X, y, names, units)
     settings = module.resolve_options(dict(options or {}))
     if operators is not None:
-        from physmend.symbolic.operators import check_operators
+        from physmend.config_check import check_operators
 
         ops = check_operators(dict(operators), "operators")
         settings = module.with_operators(settings, ops, set(options or {}))

@@ -11,7 +11,7 @@ Each back end searches with the operators it can write (:func:`operon_symbols`,
 :func:`pysr_operators`, the sparse library's term families in :mod:`physmend.symbolic._sindy`), and
 every candidate of every back end (and of the mechanism catalogue) is priced by one rule,
 :func:`priced_size`: one per variable and constant plus each operator's price, so fronts from
-different back ends are comparable. An operator outside :data:`KNOWN`, a price that is not a whole
+different back ends are comparable. An operator outside :data:`physmend.config_check.KNOWN`, a price that is not a whole
 number ≥ 1, or an empty set is a one-line error naming the file and the entry.
 
 The trigonometric operators ``sin`` and ``cos`` are periodic: their argument is a phase, an angle.
@@ -27,9 +27,6 @@ from collections.abc import Mapping
 from typing import Any
 
 import sympy as sp
-
-# the operator names and their check live with the other configuration checks (the config layer)
-from physmend.config_check import KNOWN, OperatorError, check_operators  # noqa: F401
 
 #: the price of a function a formula may hold that is not among the operators (a catalogue form's)
 UNLISTED_PRICE = 3

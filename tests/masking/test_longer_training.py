@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 
 from physmend.config import ConfigError, compose
 from physmend.problem import load_problem
-from physmend.stages.mask import longer_settings, retrain_sets, stuck_at_warm_start
+from physmend.masking.retrain import longer_settings, retrain_sets, stuck_at_warm_start
 from physmend.ude import train
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=10",

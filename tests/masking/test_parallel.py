@@ -9,7 +9,7 @@ import torch
 
 from physmend.config import compose
 from physmend.problem import load_problem
-from physmend.stages.mask_retrain import retrain_all, workers
+from physmend.masking.parallel import retrain_all, workers
 from physmend.ude import TrainResult, train
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.1", "train.segment_length=5.0", "train.epochs=4",

@@ -1,0 +1,102 @@
+"""The training solve with the hand-written backward pass (:mod:`physmend.ude.adjoint`) gives
+autograd's trajectories and gradients: gradcheck in float64 on a small stacked problem of every
+shape it takes (state subsets, corrected subsets, the box, every activation), and the drive solve
+of a real hybrid model (one and several experiments' matrices, subsets, both correction units, an
+estimated parameter) against :func:`rk4_segments` with :func:`hybrid_drive`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from physmend.ude.adjoint import ACTIVATIONS, adjoint_applies, hybrid_solve, rk4_adjoint
+from physmend.ude.drive import hybrid_drive
+from physmend.ude.shooting import BOX_MARGIN, rk4_segments
+
+from tests.ude.test_drive import VARIANTS, _setup
+
+DT = torch.float64
+
+
+def _problem(M: int = 2, S: int = 3, n: int = 3, h1: int = 4, h2: int = 3, K: int = 3, reads: list[int] | None = None,
+             index: list[int] | None = None, box: bool = True) -> tuple[list[torch.Tensor], dict]:
+    g = torch.Generator().manual_seed(1)
+    r = n if reads is None else len(reads)
+    k = n if index is None else len(index)
+
+    def rnd(*shape: int, scale: float = 1.0) -> torch.Tensor:
+        return (scale * torch.randn(*shape, dtype=DT, generator=g)).requires_grad_()
+
+    tensors = [rnd(M * S, n), rnd(M * S, n, n, scale=0.3), rnd(2 * K + 1, M * S, n), rnd(2 * K + 1, M, S, h1),
+               rnd(M, r, h1, scale=0.5), (torch.rand(M, S, k, dtype=DT, generator=g) + 0.5).requires_grad_(),
+               rnd(M, h1, h2, scale=0.5), rnd(M, 1, h2), rnd(M, h2, k, scale=0.5), rnd(M, 1, k)]
+    kw = {"h": 0.1, "steps": K, "box": (torch.full((n,), -1.5, dtype=DT), torch.full((n,), 1.5, dtype=DT)) if box else None,
+          "reads": None if reads is None else torch.tensor(reads), "index": None if index is None else torch.tensor(index)}
+    return tensors, kw
+
+
+def _call(activation: str, kw: dict):  # noqa: ANN202
+    def f(u0, A, d, pre, wu, gain, w1, b1, w2, b2):  # noqa: ANN001, ANN202, PLR0913
+        return rk4_adjoint(u0, A, d, pre, wu, [(w1, b1), (w2, b2)], gain, activation=activation, **kw)
+    return f
+
+
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+def test_gradcheck_every_activation(activation: str) -> None:
+    tensors, kw = _problem(box=False)
+    assert torch.autograd.gradcheck(_call(activation, kw), tensors, eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [{"reads": [0, 2], "index": [1]}, {"M": 1, "S": 2}, {"box": True}],
+                         ids=["subsets", "one-model", "box"])
+def test_gradcheck_shapes(shape: dict) -> None:
+    tensors, kw = _problem(**shape)
+    if kw["box"] is not None:  # some stage states outside the box, none on its edge (clamp has a kink there)
+        with torch.no_grad():
+            tensors[0].mul_(0.8)
+    assert torch.autograd.gradcheck(_call("tanh", kw), tensors, eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def test_the_box_holds_states_as_the_autograd_solve_does() -> None:
+    tensors, kw = _problem(K=6)
+    with torch.no_grad():
+        tensors[2].mul_(20.0)  # drives that push states against the box
+    out = _call("tanh", kw)(*tensors)[1:]  # the starts are given, not held
+    lo, hi = kw["box"]
+    assert bool(((out == lo) | (out == hi)).any())  # held at the box somewhere
+    assert bool((out >= lo).all() and (out <= hi).all())
+
+
+@pytest.mark.parametrize("extra", VARIANTS, ids=["default", "state-units", "subsets", "no-inputs-deep"])
+def test_the_hybrid_solve_is_the_drive_solve(user_project: Path, monkeypatch: pytest.MonkeyPatch, extra: list[str]) -> None:
+    monkeypatch.chdir(user_project)
+    _, problem, ref, hybrid, plan, u0 = _setup(user_project, extra)
+    assert adjoint_applies(hybrid) and hybrid.spec.estimated == ["damper.c"]
+    box = hybrid.spec.box(BOX_MARGIN, problem.dtype)
+    start = u0.clone().requires_grad_()
+
+    def grads(solve: str, per_experiment: bool) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        hybrid.zero_grad(set_to_none=True)
+        start.grad = None
+        p = hybrid.parameters_for(ref.batch.params)
+        rows = plan.exp_index if per_experiment else None
+        if not per_experiment:
+            p = p[plan.exp_index]
+        if solve == "adjoint":
+            traj = hybrid_solve(hybrid, p, start, plan, box, rows)
+        else:
+            rhs, drives = hybrid_drive(hybrid, p, plan.x_half, rows)
+            traj = rk4_segments(rhs, start, plan, box, drives)
+        (traj.pow(2).sum() + traj[-1, :, 0].sum()).backward()
+        return traj.detach(), [q.grad.clone() for q in hybrid.parameters()] + [start.grad.clone()]
+
+    for per_experiment in (False, True):
+        want_traj, want = grads("autograd", per_experiment)
+        got_traj, got = grads("adjoint", per_experiment)
+        torch.testing.assert_close(got_traj, want_traj, rtol=1e-12, atol=1e-12)
+        assert len(got) == len(want) >= 5
+        for a, b in zip(got, want):
+            assert float(b.abs().max()) > 0
+            torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)

@@ -21,7 +21,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("data",),
     ("problem", "simulate", "device"),
     ("explain",),
-    ("ude",),
+    ("ude", "diagnosis"),
     ("symbolic",),
     ("tracking",),
     ("sweep", "masking"),

@@ -26,9 +26,9 @@ def _simulate(problem: Any, cfg: Any) -> tuple[Any, Any, list[Any]]:
     """Every experiment of ``problem`` simulated whole, and where the model diverges: a model that
     blows up (the model as written, or a corrected one on a held-out experiment) is held inside the
     box of its records from then on and reported, never a failed stage
-    (:func:`physmend.stages.diagnose.simulate_as_written`)."""
+    (:func:`physmend.diagnosis.simulate_as_written`)."""
     from physmend.simulate import make_batch
-    from physmend.stages.diagnose import simulate_as_written
+    from physmend.diagnosis import simulate_as_written
 
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
     traj, diverged = simulate_as_written(problem, batch, cfg)

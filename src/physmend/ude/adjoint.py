@@ -134,7 +134,6 @@ class _Solve(torch.autograd.Function):
         act, dact = _FUNCTIONS[activation], _DERIVATIVES[activation]
         M, S, R, n = ctx.shape
         V, PRE, OUT, UNHELD = ctx.stages
-        ctx.stages = None
         boxed = lo is not None
         T = 4 * steps
         need = ctx.needs_input_grad

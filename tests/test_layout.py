@@ -22,7 +22,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("problem", "simulate", "device"),
     ("explain",),
     ("ude", "diagnosis"),
-    ("symbolic",),
+    ("symbolic", "proposal"),
     ("tracking",),
     ("sweep", "masking"),
     ("stages",),

@@ -205,7 +205,7 @@ def test_classify_bad_input(samples):
 def test_a_form_outside_the_catalogue_matches_nothing(samples):
     """A formula none of the catalogue's forms can reproduce gets no mechanism at the report's bar
     (propose.MIN_MECHANISM_R2): the report then says so plainly and shows the formula."""
-    from physmend.stages.propose import MIN_MECHANISM_R2
+    from physmend.proposal import MIN_MECHANISM_R2
 
     odd = sympy.sin((A - B) / 7.0) * sympy.exp(-U * 4.0) * P / 1e5
     matches = classify(odd, samples, UNITS)

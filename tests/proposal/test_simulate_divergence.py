@@ -17,13 +17,13 @@ def test_a_model_that_blows_up_is_simulated_and_its_divergence_reported(tmp_path
                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     from physmend.config import compose
     from physmend.problem import load_problem
-    from physmend.stages.propose import _simulate
+    from physmend.proposal.fits import simulate
 
     monkeypatch.chdir(tmp_path)
     conf, name = write_project(tmp_path, "blowup")
     cfg = compose([f"model={name}", f"data={name}"], user_config_dir=conf)
     problem = load_problem(cfg)
-    batch, traj, diverged = _simulate(problem, cfg)
+    batch, traj, diverged = simulate(problem, cfg)
     assert traj.outputs.shape[:2] == batch.obs.shape[:2]
     assert bool(torch.isfinite(traj.outputs).all())  # held inside the box: a table and plots all the same
     assert diverged and all(d.blows_up for d in diverged)

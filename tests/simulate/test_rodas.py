@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from physmend.simulate import SimulationError, available_methods, from_channels, odeint
-from physmend.simulate.rodas import TABLEAUS, odeint_rodas, rodas_step
+from physmend.simulate.rodas import odeint_rodas, rodas_step
+from physmend.simulate.tableaus import TABLEAUS
 from physmend.simulate.rosenbrock import odeint_rosenbrock
 
 F64 = torch.float64

@@ -400,7 +400,7 @@ def test_stale_trial_of_a_dead_worker_is_failed_and_replaced(user_project: Path,
     dead.wait()
     study = load_study(user_project)
     orphan = study.ask()
-    orphan.set_user_attr(sw.WORKER_ATTR, {"host": sw._worker()["host"], "pid": dead.pid})
+    orphan.set_user_attr(sw.WORKER_ATTR, {"host": sw.this_worker()["host"], "pid": dead.pid})
     orphan.set_user_attr(sw.HEARTBEAT_ATTR, time.time())
     assert main(sweep_args(user_project, "sweep.space=small", "sweep.n_trials=2")) == 0  # the CLI resumes it
     err = capsys.readouterr().err

@@ -49,7 +49,7 @@ LAUNCHER = textwrap.dedent(
     from physmend.cli import main
     from physmend.sweep import workers
 
-    assert workers._worker()["pid"] == pid and workers._worker()["host"] == host
+    assert workers.this_worker()["pid"] == pid and workers.this_worker()["host"] == host
     ready.touch()
     deadline = time.monotonic() + 120
     while not go.exists():  # both workers start their sweeps together

@@ -21,7 +21,7 @@ def _study(tmp_path: Path) -> optuna.Study:
 
 def test_two_workers_with_one_host_name_and_pid_do_not_mark_each_other_stale(tmp_path: Path) -> None:
     study = _study(tmp_path)
-    me = workers._worker()
+    me = workers.this_worker()
     assert me["id"] == workers.WORKER_ID and len(me["id"]) == 32
     # another container: same host name, same PID, another worker ID and PID namespace, beating
     other = {**me, "id": "f" * 32, "ns": "another-boot:4026531836"}
@@ -42,7 +42,7 @@ def test_two_workers_with_one_host_name_and_pid_do_not_mark_each_other_stale(tmp
 
 def test_a_dead_worker_in_the_same_namespace_is_stale_at_once(tmp_path: Path) -> None:
     study = _study(tmp_path)
-    me = workers._worker()
+    me = workers.this_worker()
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
     for pid, stale in ((dead.pid, True), (workers.os.getppid(), False)):

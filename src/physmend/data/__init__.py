@@ -13,7 +13,7 @@ See :mod:`physmend.data.config` for the data config schema. Every bad input rais
 
 from __future__ import annotations
 
-from physmend.data.config import ROLES, DataConfig, ExperimentSpec, parse_data_config, resolve_root
+from physmend.data.config import ROLES, DataConfig, ExperimentSpec, parse_data_config
 from physmend.data.errors import DataError
 from physmend.data.experiments import (
     Experiment,
@@ -21,6 +21,7 @@ from physmend.data.experiments import (
     load_experiments,
     summarize_experiments,
 )
+from physmend.data.root import resolve_root
 from physmend.data.telemetry import Channel
 
 __all__ = [

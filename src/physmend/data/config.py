@@ -23,8 +23,6 @@ names, values) is checked here, before any telemetry is read.
 
 from __future__ import annotations
 
-import difflib
-import importlib.resources
 import math
 import re
 from collections.abc import Mapping, Sequence
@@ -33,6 +31,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from physmend.data.errors import DataError
+from physmend.data.raw import _check_typos, _did_you_mean, _number, to_plain
+from physmend.data.root import resolve_root
 
 if TYPE_CHECKING:
     from physmend.modeling.simplify import SimplifiedModel
@@ -42,7 +42,6 @@ ROLES: tuple[str, ...] = ("train", "validation", "test")
 
 DEFAULT_TIME_COLUMN = "time"
 DEFAULT_VALIDATION_FRACTION = 0.2
-PKG_SCHEME = "pkg://"
 
 _TOP_KEYS = ("name", "root", "time_column", "time_unit", "columns", "validation_fraction", "experiments")
 _EXP_KEYS = ("id", "file", "role", "parameters", "initial")
@@ -126,107 +125,6 @@ def time_unit_of(data_cfg: Any) -> str:
         raise DataError(f"data config {name!r}: `time_unit` must be a short unit name (letters, digits, _ . / -; "
                         f"at most 24 characters), e.g. s or tu, but got {value!r}")
     return value
-
-
-
-def _close(word: str, options: Sequence[str], n: int = 3, cutoff: float = 0.6) -> list[str]:
-    return difflib.get_close_matches(word, list(options), n=n, cutoff=cutoff)
-
-
-def _did_you_mean(word: str, options: Sequence[str]) -> str:
-    matches = _close(word, options)
-    return f"; close matches: {matches}" if matches else ""
-
-
-def to_plain(data_cfg: Any) -> Any:
-    """An OmegaConf container (resolved) or any mapping/sequence as plain ``dict``/``list``."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        DictConfig = ListConfig = ()  # type: ignore[assignment,misc]
-    if DictConfig and isinstance(data_cfg, (DictConfig, ListConfig)):
-        try:
-            return OmegaConf.to_container(data_cfg, resolve=True)
-        except Exception as exc:  # interpolation errors and the like
-            raise DataError(f"data config cannot be resolved: {exc}") from exc
-    if isinstance(data_cfg, Mapping):
-        return {k: to_plain(v) for k, v in data_cfg.items()}
-    if isinstance(data_cfg, (list, tuple)):
-        return [to_plain(v) for v in data_cfg]
-    return data_cfg
-
-
-def _check_typos(mapping: Mapping[str, Any], known: Sequence[str], where: str) -> None:
-    """Unknown keys are allowed (extensions), unless one looks like a misspelt known key."""
-    for key in mapping:
-        if key in known or not isinstance(key, str):
-            continue
-        matches = _close(key, known, n=1, cutoff=0.75)
-        if matches:
-            raise DataError(
-                f"{where}: unknown key {key!r}; did you mean {matches[0]!r}? "
-                f"(known keys: {list(known)})"
-            )
-
-
-def _number(value: Any, what: str) -> float:
-    """``value`` as a finite float, else a DataError naming ``what``."""
-    if isinstance(value, bool):
-        raise DataError(f"{what} must be a finite number, but got {value!r}")
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise DataError(f"{what} must be a finite number, but got {value!r}") from None
-    if not math.isfinite(out):
-        raise DataError(f"{what} must be a finite number, but got {value!r}")
-    return out
-
-
-def resolve_root(root: Any, *, config_name: str = "data") -> Path:
-    """The absolute folder named by ``root``.
-
-    ``pkg://<package>/<subdir>`` is a folder inside an installed package (``importlib.resources``);
-    anything else is a path: ``~`` expands and relative paths resolve against the current working
-    directory. The folder itself is not required to exist here (a missing file is reported with
-    its resolved path when it is read).
-    """
-    if isinstance(root, Path):
-        root = str(root)
-    if not isinstance(root, str) or not root.strip():
-        raise DataError(
-            f"data config {config_name!r}: `root` must be a folder path or "
-            f"'pkg://<package>/<subdir>', but got {root!r}"
-        )
-    if root.startswith(PKG_SCHEME):
-        rest = root[len(PKG_SCHEME) :]
-        package, _, subdir = rest.partition("/")
-        if not package:
-            raise DataError(
-                f"data config {config_name!r}: `root` {root!r} must name a package, "
-                "as in 'pkg://my_package/telemetry'"
-            )
-        try:
-            base = importlib.resources.files(package)
-        except Exception as exc:  # ModuleNotFoundError, TypeError for non-packages, import errors
-            raise DataError(
-                f"data config {config_name!r}: `root` {root!r} names package {package!r}, "
-                f"which is not importable: {exc}"
-            ) from None
-        target = base.joinpath(*[p for p in subdir.split("/") if p]) if subdir else base
-        return _traversable_path(target, root, config_name)
-    return Path(root).expanduser().resolve()
-
-
-def _traversable_path(target: Any, root: str, config_name: str) -> Path:
-    if isinstance(target, Path):
-        return target.resolve()
-    paths = getattr(target, "_paths", None)  # namespace package: MultiplexedPath
-    if paths:
-        return Path(paths[0]).resolve()
-    raise DataError(
-        f"data config {config_name!r}: `root` {root!r} is not a folder on the file system "
-        f"(resource {target!r}); install the package unzipped or give a path"
-    )
 
 
 # -- parsing ---------------------------------------------------------------------------------------

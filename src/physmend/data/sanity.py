@@ -15,7 +15,7 @@ Two general rules, each derived from what the arithmetic or the solver can do, n
   resample it.
 
 Each failure is one :class:`DataError` line naming the experiment, file and column, the rule and the
-value, in the data's own time unit. Imports numpy and the data error only.
+value, in the data's own time unit.
 """
 
 from __future__ import annotations

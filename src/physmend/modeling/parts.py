@@ -1,13 +1,14 @@
 """The parts a model is made of: variables, equations as written, measured outputs.
 
 Plain frozen dataclasses with no behaviour beyond printing; :mod:`physmend.modeling.model` builds
-them and :mod:`physmend.modeling.simplify` reads them. This module imports nothing of physmend.
+them and :mod:`physmend.modeling.simplify` reads them, through :class:`Declared` (what a model
+offers of them), so that simplification need not know the model class.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 import sympy as sp
 
@@ -63,3 +64,17 @@ class Output:
 
 def der_name(state_name: str) -> str:
     return f"der({state_name})"
+
+
+class Declared(Protocol):
+    """A model as its declarations: what structural simplification reads (a
+    :class:`physmend.modeling.model.Model` is one)."""
+
+    name: str
+    variables: dict[str, Variable]
+    equations: list[Equation]
+    outputs: dict[str, Output]
+
+    def of_kind(self, kind: Kind) -> list[Variable]: ...
+
+    def connection_equations(self) -> list[Equation]: ...

@@ -17,7 +17,7 @@ syntax tree and accepts only
 
 Anything else — attributes, subscripts, lambdas, comprehensions, keyword arguments (but
 ``precision``), strings outside ``Symbol``/``Float`` — is refused with one :class:`ModelError` line
-naming ``where`` and the offending piece. Imports nothing of physmend but the error.
+naming ``where`` and the offending piece.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 whatever the aliases say: a few nested anchors (``&a [*b, *b, …]``) expand to gigabytes from under
 a kilobyte. A file physmend did not write itself is read here instead: its size is checked before
 parsing, an alias is refused (physmend never writes one), and every error is one line naming the
-file and what was expected. Imports nothing of physmend but the error it is given.
+file and what was expected.
 """
 
 from __future__ import annotations

@@ -18,17 +18,13 @@ parameters only.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import networkx as nx
 import sympy as sp
 from sympy.solvers.solveset import NonlinearError
 
 from physmend.modeling.errors import ModelError
-from physmend.modeling.parts import Equation, Variable, der_name
-
-if TYPE_CHECKING:
-    from physmend.modeling.model import Model
+from physmend.modeling.parts import Declared, Equation, Variable, der_name
 
 
 @dataclass
@@ -116,7 +112,7 @@ def _alias_target(residual: sp.Expr, eliminable: set[sp.Symbol]) -> tuple[sp.Sym
     return v, sp.expand(-rest / coeff)
 
 
-def simplify(model: Model) -> SimplifiedModel:
+def simplify(model: Declared) -> SimplifiedModel:
     """Reduce ``model`` to an explicit ODE plus observed equations (see module docstring)."""
     states = model.of_kind("state")
     if not states:

@@ -19,8 +19,9 @@ import numpy as np
 import torch
 
 from physmend.simulate.errors import SimulationError
-from physmend.simulate.rodas import _Coefficients, _value_and_jacobian, rodas_step, tableau_named, without_steps
+from physmend.simulate.rodas import _Coefficients, _value_and_jacobian, rodas_step, without_steps
 from physmend.simulate.rosenbrock import check_times
+from physmend.simulate.tableaus import tableau_named
 
 Rhs = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 

@@ -20,7 +20,7 @@ Jacobian taken there, makes no sense. This module states the rule and gives the 
   rates that point out of it: a model that blows up in finite time can still be simulated, up to
   the time it reaches the box, exactly as written.
 
-Times are in the data's own time unit. Imports torch only.
+Times are in the data's own time unit.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ value within the declared range whose simulated outputs best match the first
 found by a batched search (every candidate of every experiment in one solve: the whole declared box,
 then a few rounds of finer boxes around the best :data:`KEEP`). It is a function of the model and the record alone, so validation and
 test experiments get theirs from their own opening window, exactly as a user's observer would;
-their remaining record is what the fit is judged on. Imports ``batch`` and ``errors`` only.
+their remaining record is what the fit is judged on.
 """
 
 from __future__ import annotations

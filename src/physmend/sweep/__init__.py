@@ -46,7 +46,7 @@ Divergence and budget
     ``n_trials`` trials, then as many more as the budget allows at what those cost, ``max_trials``
     at most (:mod:`physmend.sweep.budget`; ``physmend discover`` sweeps this way).
 
-Modules (imports go one way, top to bottom; nothing here imports :mod:`physmend.stages`)
+Modules (nothing here imports :mod:`physmend.stages`)
     ``space``     search-space files, parsing, sampling into Hydra overrides
     ``restart``   which errors restart a trial, and with which settings
     ``budget``    how many trials a budget allows
@@ -54,16 +54,24 @@ Modules (imports go one way, top to bottom; nothing here imports :mod:`physmend.
     ``configs``   each trial's composed configuration and problem
     ``storage``   the Optuna storage and study: open, fingerprint, tally
     ``workers``   worker processes, identity, heartbeats, stale trials
-    ``report``    per-epoch reporter, logged results, progress lines, summary
+    ``report``    per-epoch reporter, logged results, progress lines
+    ``outcome``   how one trial ended
+    ``child``     a trial's child run: opened, tagged on a restart, marked FAIL or KILLED
+    ``group``     trials asked as a group and trained as one stack
+    ``loop``      the study loop (one trial or a group at a time)
     ``parent``    the sweep's parent MLflow run
-    ``loop``      the study loop (one trial or a stack at a time)
-The stage itself, ``physmend.stages.sweep.run(cfg, source_run_id) -> run_id``, puts them together.
+    ``summary``   the closing summary and the divergence rate
+    ``run``       :func:`run_sweep`: everything checked, study and parent run opened, workers
+                  started, the loop driven to the summary
+The stage, ``physmend.stages.sweep.run(cfg, source_run_id) -> run_id``, calls :func:`run_sweep`.
 """
 
 from __future__ import annotations
 
 from physmend.sweep.configs import TrialConfigs, check_overrides, probe_space
-from physmend.sweep.loop import Outcome, Sweep
+from physmend.sweep.loop import Sweep
+from physmend.sweep.outcome import Outcome
+from physmend.sweep.run import NoTrialCompleted, run_sweep
 from physmend.sweep.settings import PRUNERS, SAMPLERS, Settings, shape_keys
 from physmend.sweep.space import KINDS, Param, SearchSpace, available_spaces, hydra_value, load_space, parse_space, trial_overrides
 from physmend.sweep.storage import (
@@ -79,11 +87,11 @@ from physmend.sweep.storage import (
     study_fingerprint,
     tally,
 )
-from physmend.sweep.workers import _worker, is_stale
+from physmend.sweep.workers import is_stale, this_worker
 
 __all__ = [
     "CONFIG_ATTR", "HEARTBEAT_ATTR", "KINDS", "PARENT_ATTR", "PRUNERS", "REASON_ATTR", "RUN_ID_ATTR", "SAMPLERS",
-    "UNCOUNTED", "WORKER_ATTR", "Outcome", "Param", "SearchSpace", "Settings", "Sweep", "Tally", "TrialConfigs",
+    "UNCOUNTED", "WORKER_ATTR", "NoTrialCompleted", "Outcome", "Param", "SearchSpace", "Settings", "Sweep", "Tally", "TrialConfigs",
     "available_spaces", "check_overrides", "hydra_value", "is_stale", "load_space", "open_storage", "parse_space",
-    "probe_space", "shape_keys", "study_fingerprint", "tally", "trial_overrides",
+    "probe_space", "run_sweep", "shape_keys", "study_fingerprint", "tally", "this_worker", "trial_overrides",
 ]

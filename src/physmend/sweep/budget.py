@@ -17,7 +17,7 @@ count (each trial's sampler is seeded by ``seed`` + its number), so the same con
 and count give the same trials; rerunning with ``sweep.n_trials=<count> sweep.budget=null``
 reproduces a budgeted sweep anywhere. **The count itself depends on how fast this machine trains
 the first trials**: it may differ between machines, and on one machine where the estimate falls
-near a whole number of trials. Imports nothing of physmend.
+near a whole number of trials.
 """
 
 from __future__ import annotations

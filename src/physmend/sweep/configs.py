@@ -1,5 +1,5 @@
 """Each trial's configuration (composed from the sweep's overrides plus its values) and problem;
-checks that searched keys compose before anything is written. Imports :mod:`physmend.sweep.space`.
+checks that searched keys compose before anything is written.
 """
 
 from __future__ import annotations

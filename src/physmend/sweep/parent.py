@@ -1,5 +1,5 @@
 """The sweep's parent MLflow run: its tags, its creation by the study's first worker, how other
-workers find it, and its closing tags (best trial, selection). Imports storage, report.
+workers find it, and its closing tags (best trial, selection).
 """
 
 from __future__ import annotations

@@ -10,7 +10,6 @@ start). Its Optuna parameters stay what the sampler proposed; its child run reco
 trained with (tags ``physmend.restarts``, ``physmend.restart.reasons``,
 ``physmend.restart.overrides``, and the ``config.yaml`` artifact, which later stages load). Only
 divergence restarts a trial (:func:`diverged`); a wrong setting or a pruning signal does not.
-Imports nothing of physmend's sweep modules.
 """
 
 from __future__ import annotations

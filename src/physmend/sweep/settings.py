@@ -1,5 +1,5 @@
 """The ``sweep.*`` options, checked on construction; the sampler and the pruner they make; the
-searched keys that shape a stacked solve. Imports :mod:`physmend.sweep.space`.
+searched keys that shape a stacked solve.
 """
 
 from __future__ import annotations
@@ -152,9 +152,9 @@ class Settings:
 
 def shape_keys(space: SearchSpace) -> list[str]:
     """The searched keys that shape a stacked solve: those the models of a stack must share
-    (:data:`physmend.ude.stacked.SHARED_KEYS`, e.g. ``train.segment_length``) and the network's width
+    (:data:`physmend.ude.stack.SHARED_KEYS`, e.g. ``train.segment_length``) and the network's width
     and depth (mixed ones are padded to the largest)."""
-    from physmend.ude.stacked import SHARED_KEYS
+    from physmend.ude.stack import SHARED_KEYS
 
     shaping = (*SHARED_KEYS, "ude.width", "ude.depth")
     return [key for key in space.params if any(key == s or key.startswith(s + ".") for s in shaping)]

@@ -1,5 +1,5 @@
 """Search spaces: the YAML files of ``sweeps/`` (or the user's own), parsed and checked, and
-sampled into Hydra overrides. Imports nothing of physmend but :mod:`physmend.config`.
+sampled into Hydra overrides.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The Optuna storage and study: opening (with retries), the study's fingerprint compared on
-resume, and the tally of trials that count towards ``sweep.n_trials``. Imports space and settings.
+resume, and the tally of trials that count towards ``sweep.n_trials``.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Worker processes, identity, heartbeats and stale trials: what a worker records on its running
-trial, and when another worker may mark that trial FAIL (interrupted). Imports storage.
+trial, and when another worker may mark that trial FAIL (interrupted).
 
 Identity
     Each worker process draws a random ID once (``uuid4``) and records it on every trial it runs,
@@ -48,7 +48,7 @@ def _namespace() -> str:
     return f"{boot}:{pidns}"
 
 
-def _worker() -> dict[str, Any]:
+def this_worker() -> dict[str, Any]:
     """What a worker records on its running trial (see the module docstring)."""
     return {"id": WORKER_ID, "host": socket.gethostname(), "pid": os.getpid(), "ns": _namespace()}
 

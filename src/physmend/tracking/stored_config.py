@@ -5,7 +5,7 @@ configuration is never *resolved* (an interpolation such as ``${oc.env:HOME}`` i
 evaluated), and the model is never built from the builder a stored configuration names: the
 current user's own ``model`` and ``data`` configuration is used, after checking that the run was
 made with the same ones (a run made with another model or data is one clear error naming the run
-and the first difference). Imports nothing of physmend but the tracking error.
+and the first difference).
 """
 
 from __future__ import annotations

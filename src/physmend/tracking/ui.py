@@ -9,7 +9,6 @@ line, not minutes of MLflow's own retries, and one that accepts connections but 
 given up after :data:`PROBE_TIMEOUT` seconds whatever its driver (:mod:`physmend.tracking.probe`).
 The server stops with physmend on SIGTERM and SIGHUP as on Ctrl-C (:mod:`physmend.tracking.child`).
 A tracking server (``http(s)://``) is its own UI: its address is printed and nothing is started.
-Imports ``redact`` and the tracking store.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ USER_ERROR_NAMES: tuple[tuple[str, str], ...] = (
     ("physmend.ude.stored_spec", "ArtifactError"),
     ("physmend.config", "ConfigError"),
     ("physmend.data.errors", "DataError"),
-    ("physmend.explain.mechanisms", "MechanismError"),
+    ("physmend.explain.catalogue", "MechanismError"),
     ("physmend.modeling.errors", "ModelError"),
     ("physmend.sweep.run", "NoTrialCompleted"),
     ("physmend.simulate.errors", "SimulationError"),

@@ -6,14 +6,8 @@ import numpy as np
 import pytest
 import sympy
 
-from physmend.explain.mechanisms import (
-    DEFAULT_CATALOGUE,
-    CatalogueError,
-    MechanismError,
-    MechanismMatch,
-    classify,
-    load_catalogue,
-)
+from physmend.explain.catalogue import DEFAULT_CATALOGUE, CatalogueError, MechanismError, load_catalogue
+from physmend.explain.mechanisms import MechanismMatch, classify
 
 T1, T2, PRESS, FLOW = "zone1.air.T", "ambient.T", "zone1.air.p", "fan.flow"
 A, B, P, U = (sympy.Symbol(n) for n in (T1, T2, PRESS, FLOW))

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import sympy
 
-from physmend.explain.mechanisms import classify, load_catalogue
+from physmend.explain.catalogue import load_catalogue
+from physmend.explain.mechanisms import classify
 from physmend.symbolic.choice import catalogue_candidates
 from physmend.modeling.interval import interval_violation
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from physmend.config import compose
-from physmend.explain.mechanisms import CatalogueError, load_catalogue
+from physmend.explain.catalogue import CatalogueError, load_catalogue
 from physmend.modeling import ModelError, apply_corrections, load_model, read_corrections
 from physmend.symbolic import SymbolicError
 from physmend.symbolic._front import Candidate

@@ -45,7 +45,8 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
     from physmend.symbolic.operators import priced_size
     import itertools
 
-    from physmend.explain.mechanisms import SECOND, fit_with_k, load_catalogue
+    from physmend.explain.catalogue import SECOND, load_catalogue
+    from physmend.explain.mechanisms import fit_with_k
     from physmend.symbolic import Candidate, display, evaluate, mse_r2
 
     out, seen = [], set()

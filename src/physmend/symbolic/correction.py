@@ -16,7 +16,8 @@ from physmend.symbolic.targets import equation_unit
 def canonical_form(expr: sp.Expr, columns: dict[str, np.ndarray], units: dict[str, str], min_r2: float) -> tuple[sp.Expr, str, float] | None:
     """The mechanism catalogue's clean form of ``expr`` (one constant) if it reproduces ``expr``
     on the samples (``columns``: ``(N,)`` each) with R² ≥ ``min_r2``; ``None`` otherwise."""
-    from physmend.explain.mechanisms import classify, load_catalogue
+    from physmend.explain.catalogue import load_catalogue
+    from physmend.explain.mechanisms import classify
 
     used = {s.name for s in expr.free_symbols}
     if not used or not used <= set(columns):

@@ -16,7 +16,7 @@ MAX_LINES = 400
 # Layers, lowest first: a module may import from its own layer's package and from lower layers.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("exceptions", "redact"),
-    ("config", "config_check"),
+    ("config", "config_check", "settings"),
     ("modeling",),
     ("data",),
     ("problem", "simulate", "device"),
@@ -213,8 +213,14 @@ def _unused_imports(source: str) -> list[str]:
     return sorted(name for name in bound if name not in used)
 
 
+def _long_modules(root: Path = PACKAGE, limit: int = MAX_LINES) -> dict[str, int]:
+    """Modules under ``root`` longer than ``limit`` lines: path -> lines."""
+    return {str(p.relative_to(root.parent)): n for p in sorted(root.rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > limit}
+
+
 def test_no_module_is_longer_than_the_limit() -> None:
-    long = {str(p.relative_to(SRC)): n for p in PACKAGE.rglob("*.py") if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    long = _long_modules()
     assert not long, f"modules over {MAX_LINES} lines (split them by concern): {long}"
 
 
@@ -244,10 +250,9 @@ def test_no_private_name_is_imported_from_another_package() -> None:
     assert not found, f"private names used across packages (give them a public name in their package): {found}"
 
 
-def test_no_module_is_empty_or_only_passes_names_on() -> None:
-    """A package's ``__init__`` may gather its public face; any other module holds code of its own, and
-    a package holds at least one module besides its ``__init__`` or code in it."""
-    modules = _modules()
+def _idle(modules: dict[str, Path]) -> tuple[list[str], list[str]]:
+    """Modules without code of their own (a package's ``__init__`` excepted: it may gather its public
+    face), and packages without a module besides their ``__init__`` nor code in it."""
     idle = sorted(
         name for name, path in modules.items() if path.name != "__init__.py" and _does_nothing(path.read_text())
     )
@@ -256,6 +261,11 @@ def test_no_module_is_empty_or_only_passes_names_on() -> None:
         if path.name == "__init__.py" and name != "physmend"
         and not any(other.startswith(name + ".") for other in modules) and _does_nothing(path.read_text())
     )
+    return idle, empty
+
+
+def test_no_module_is_empty_or_only_passes_names_on() -> None:
+    idle, empty = _idle(_modules())
     assert not idle, f"modules without code of their own: {idle}"
     assert not empty, f"empty packages: {empty}"
 
@@ -305,8 +315,27 @@ def test_imports_inside_functions_and_for_type_checking_make_circles(tmp_path: P
     assert _cycle(run_time) is None
 
 
-def test_the_length_limit_is_the_aim_of_the_docs() -> None:
+def test_the_length_check_finds_long_modules(tmp_path: Path) -> None:
+    pkg = tmp_path / "physmend"
+    (pkg / "m").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "m" / "short.py").write_text("x = 1\n" * 400)
+    (pkg / "m" / "long.py").write_text("x = 1\n" * 401)
+    assert _long_modules(pkg, 400) == {"physmend/m/long.py": 401}
     assert MAX_LINES == 400 and "no module over 400 lines" in (SRC.parent / "docs" / "layout.md").read_text()
+
+
+def test_the_idle_check_finds_empty_packages_and_modules(tmp_path: Path) -> None:
+    pkg = tmp_path / "physmend"
+    for sub in ("empty", "face", "busy"):
+        (pkg / sub).mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "empty" / "__init__.py").write_text('"""Nothing yet."""\nfrom __future__ import annotations\n')
+    (pkg / "face" / "__init__.py").write_text("from physmend.face.work import f\n__all__ = ['f']\n")
+    (pkg / "face" / "work.py").write_text("def f() -> None: ...\n")
+    (pkg / "face" / "old_path.py").write_text("from physmend.face.work import f  # noqa: F401\n")
+    (pkg / "busy" / "__init__.py").write_text("X = 1\n")
+    assert _idle(_modules(pkg)) == (["physmend.face.old_path"], ["physmend.empty"])
 
 
 @pytest.mark.parametrize(

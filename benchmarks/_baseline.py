@@ -57,7 +57,10 @@ def run(cfg: Any, problem: Any, target: Target, *, cap_s: float, eval_every: int
     import torchdiffeq
 
     from physmend.ude.hybrid import HybridModel
-    from physmend.ude.train import TrainingDiverged, build_spec, checkpoint_problem, evaluate, reference
+    from physmend.ude.outcome import TrainingDiverged
+    from physmend.ude.spec import build_spec
+    from physmend.ude.metrics import checkpoint_problem, evaluate
+    from physmend.ude.reference import reference
 
     torch.set_num_threads(1)
     torch.manual_seed(seed)

@@ -33,7 +33,8 @@ def with_eval_every(cfg: Any, eval_every: int) -> Any:
 
 def run(cfg: Any, problem: Any, target: Target, *, cap_s: float, eval_every: int, seed: int) -> dict[str, Any]:
     """Call ``train`` until the target, the cap (s) or its own end; wall times (s) from the call."""
-    from physmend.ude.train import TrainingDiverged, train
+    from physmend.ude.outcome import TrainingDiverged
+    from physmend.ude.train import train
 
     cfg = with_eval_every(cfg, eval_every)
     cfg.seed = seed
@@ -96,7 +97,9 @@ def eval_seconds(cfg: Any, problem: Any) -> float:
     experiments, as ``train`` checks them; test experiments are simulated once, at the end) of a
     freshly initialised hybrid."""
     from physmend.ude.hybrid import HybridModel
-    from physmend.ude.train import build_spec, checkpoint_problem, evaluate, reference
+    from physmend.ude.spec import build_spec
+    from physmend.ude.metrics import checkpoint_problem, evaluate
+    from physmend.ude.reference import reference
 
     hybrid = HybridModel(problem.compiled, build_spec(cfg, problem, reference(problem, cfg)), problem.dtype)
     checked = checkpoint_problem(problem)
@@ -121,7 +124,8 @@ def count_flops(cfg: Any, problem: Any) -> dict[str, Any]:
     Two short runs (``COUNT_EPOCHS`` epochs apart) separate the per-epoch rows from one-off work
     before the first epoch (e.g. a warm start), which is reported as ``setup_rows``.
     """
-    from physmend.ude.train import build_spec, reference
+    from physmend.ude.spec import build_spec
+    from physmend.ude.reference import reference
 
     spec = build_spec(cfg, problem, reference(problem, cfg))
     per_row = rhs_flops(spec, len(problem.compiled.state_names), len(problem.compiled.input_names))
@@ -153,7 +157,7 @@ def _rows_of_run(cfg: Any, problem: Any, epochs: int, n_inputs: int, first_width
 def shooting_rows(cfg: Any, problem: Any) -> float:
     """RHS row evaluations of one multiple-shooting RK4 epoch: 4 stages x steps x segments."""
     from physmend.simulate import make_batch
-    from physmend.ude.train import plan_shooting
+    from physmend.ude.shooting import plan_shooting
 
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
     plan = plan_shooting(problem, batch, cfg)

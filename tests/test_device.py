@@ -15,7 +15,7 @@ from physmend.problem import load_problem
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.spec import build_spec
 from physmend.ude.timescale import resolve_times
-from physmend.ude.train import reference
+from physmend.ude.reference import reference
 
 
 def test_auto_is_the_gpu_when_torch_sees_one_else_the_cpu() -> None:
@@ -69,7 +69,7 @@ def test_a_network_starts_from_the_cpu_weights_and_moves_to_the_training_device(
 def test_training_on_the_gpu_gives_the_cpu_result_back_on_the_cpu(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """One small training and one stack of two on each device: the same checkpoints' metrics (to the
     solver's tolerance: kernels round differently), and models returned on the CPU."""
-    from physmend.ude.stacked import train_stack
+    from physmend.ude.stack import train_stack
     from physmend.ude.train import train
 
     monkeypatch.chdir(user_project)

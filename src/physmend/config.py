@@ -23,6 +23,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from physmend.exceptions import PhysmendError
+from physmend.settings import SettingError, shipped_dir
 
 
 class ConfigError(PhysmendError, ValueError):
@@ -30,11 +31,10 @@ class ConfigError(PhysmendError, ValueError):
 
 
 def _shipped(name: str) -> Path:
-    here = Path(__file__).resolve().parent
-    for candidate in (here / name, here.parents[1] / name):
-        if candidate.is_dir():
-            return candidate
-    raise ConfigError(f"physmend's {name}/ directory is missing (looked in {here / name} and {here.parents[1] / name})")
+    try:
+        return shipped_dir(name)
+    except SettingError as exc:
+        raise ConfigError(str(exc)) from None
 
 
 def config_dir() -> Path:
@@ -126,7 +126,7 @@ def compose(
     choices = {str(k): str(v) for k, v in OmegaConf.to_container(cfg.hydra.runtime.choices).items()}
     del cfg["hydra"]
     _substitute_project(cfg, choices, [*search, config_dir()])
-    from physmend.config_check import SettingError, check_settings
+    from physmend.config_check import check_settings
 
     try:
         check_settings(cfg, choices, config_dir())

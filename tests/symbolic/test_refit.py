@@ -52,7 +52,7 @@ def test_jacobian_matches_autograd(user_project: Path, monkeypatch: pytest.Monke
     assert J.shape == (r.numel(), 1 + shoot.F * shoot.n)
     grad_fd = 2 * (J.T @ r.numpy())
 
-    from physmend.ude.train import rk4_segments
+    from physmend.ude.shooting import rk4_segments
 
     th = theta.clone().requires_grad_(True)
     vv = v.clone().requires_grad_(True)

@@ -10,7 +10,8 @@ import torch
 from physmend.config import compose
 from physmend.problem import load_problem
 from physmend.ude.analysis import input_jacobian, rank_corrections, rank_inputs, training_trajectories
-from physmend.ude.train import build_spec, reference
+from physmend.ude.spec import build_spec
+from physmend.ude.reference import reference
 from physmend.ude.hybrid import HybridModel
 
 

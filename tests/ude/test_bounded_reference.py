@@ -93,7 +93,7 @@ def test_a_model_that_does_not_diverge_gets_its_reference_bit_for_bit(user_proje
 
 
 def test_training_on_a_diverging_model_stays_within_its_memory_budget(tmp_path: Path) -> None:
-    from physmend.ude.stacked import train_stack
+    from physmend.ude.stack import train_stack
 
     cfg, problem = _problem(tmp_path, "growth", "train.epochs=4", "train.eval_every=2", "train.polish=0",
                             "train.restarts=0", "ude.width=8", "ude.depth=1")

@@ -17,7 +17,7 @@ from physmend.ude.hybrid import HybridModel
 from physmend.ude.shooting import BOX_MARGIN, initial_segments, plan_shooting, rk4_segments
 from physmend.ude.spec import build_spec
 from physmend.ude.timescale import resolve_times
-from physmend.ude.train import reference
+from physmend.ude.reference import reference
 
 BASE = ["model=oscillator", "data=oscillator", "train.step=0.1", "train.segment_length=5", "simulate=explicit"]
 VARIANTS = [
@@ -82,8 +82,9 @@ def test_the_drive_is_the_right_hand_side(user_project: Path, monkeypatch: pytes
 def test_the_stack_drive_is_the_stack_right_hand_side(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Three models of different depths and activations in one stack: the drive's solve equals the
     plain stacked right-hand side's, trajectories and gradients."""
-    from physmend.ude.stack import _Stack
-    from physmend.ude.stack_members import _prepare
+    from physmend.settings import training_settings
+    from physmend.ude.stack.members import prepare
+    from physmend.ude.stack.solve import Stack
 
     monkeypatch.chdir(user_project)
     trials = [["seed=1", "ude.width=8", "ude.depth=1", "ude.activation=tanh"],
@@ -94,7 +95,8 @@ def test_the_stack_drive_is_the_stack_right_hand_side(user_project: Path, monkey
     ref = reference(problem, cfgs[0])
     cfgs = [resolve_times(c, problem, ref) for c in cfgs]
     plan = plan_shooting(problem, ref.batch, cfgs[0])
-    stack = _Stack([_prepare(c, problem, ref, plan, i, warm=False) for i, c in enumerate(cfgs)], problem, ref, plan, cfgs[0])
+    stack = Stack([prepare(training_settings(c), problem, ref, plan, i, warm=False) for i, c in enumerate(cfgs)],
+                  problem, ref, plan, cfgs[0])
     with torch.no_grad():
         for w in stack.net.weights:
             w.add_(0.3 * torch.randn_like(w))

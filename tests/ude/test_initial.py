@@ -16,9 +16,9 @@ from physmend.simulate import make_batch
 from physmend.simulate.initial import estimate_initial
 from physmend.ude import reference, train
 from physmend.ude.metrics import hybrid_states
-from physmend.ude.reference import _sim_opts, simulate_with
+from physmend.ude.reference import solver_options, simulate_with
 from physmend.ude.shooting import pinned_starts
-from physmend.ude.train import plan_shooting
+from physmend.ude.shooting import plan_shooting
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=10",
         "train.eval_every=10", "train.lr=0.02", "ude.width=8", "ude.depth=1", "train.patience=0",
@@ -62,7 +62,7 @@ def test_unknown_initial_values_are_estimated_from_each_record(user_project: Pat
 
     result = train(cfg, problem)
     states = hybrid_states(result.hybrid, problem, make_batch(problem.experiments, problem.compiled, problem.dtype),
-                           _sim_opts(cfg))
+                           solver_options(cfg))
     # the hybrid's own estimates (not the written model's), inside the declared range
     assert bool((states[0, :, :2].abs() <= 1.0).all())
     assert not torch.allclose(states[0], ref.batch.u0)
@@ -78,7 +78,7 @@ def test_with_the_physics_complete_the_true_starts_are_found(user_project: Path,
     cfg = compose(TINY, user_config_dir=user_project / "my_conf")
     problem = load_problem(cfg)
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
-    sim = _sim_opts(cfg)
+    sim = solver_options(cfg)
 
     def truth(u: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         pos, vel = u[..., 0], u[..., 1]
@@ -127,7 +127,7 @@ def test_a_failing_candidate_scores_infinitely_badly_and_a_batch_without_unknown
     problem = load_problem(cfg)
     batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
     assert all(batch.initial_ranges)
-    sim = _sim_opts(cfg)
+    sim = solver_options(cfg)
     model = problem.compiled
     def positive_only(sub, u0):  # noqa: ANN001, ANN202
         """The model as written, except that a start with cart.x < 0 'fails to simulate'."""

@@ -11,7 +11,7 @@ import torch
 from physmend.data import load_experiments
 from physmend.modeling import Model, compile_model
 from physmend.problem import Problem
-from physmend.ude.train import informative_parameters
+from physmend.ude.spec import informative_parameters
 
 
 def _problem(tmp_path: Path, areas: list[float], roles: list[str]) -> Problem:

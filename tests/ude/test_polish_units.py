@@ -14,7 +14,7 @@ from physmend.ude import TrainResult, train
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.reference import reference
 from physmend.ude.spec import build_spec
-from physmend.ude.stacked import train_stack
+from physmend.ude.stack import train_stack
 from physmend.ude.timescale import resolve_times
 
 # the oscillator of tests/conftest.py (mass·der(v) = force), records cut short, an explicit solver

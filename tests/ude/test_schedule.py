@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 from omegaconf import OmegaConf
 
-from physmend.ude.hybrid import UDEConfigError
-from physmend.ude.schedule import cycle_of, restarts, stops_at
+from physmend.settings import SettingError, TrainSettings, shipped_default
+from physmend.ude.schedule import cycle_of, stops_at
 
 
 def test_a_model_that_could_never_be_simulated_restarts_and_one_that_just_recovered_gets_a_full_cycle() -> None:
@@ -20,8 +20,8 @@ def test_a_model_that_could_never_be_simulated_restarts_and_one_that_just_recove
     assert not stops_at(250, epochs, 1)  # not at a cycle's end
 
 
-def test_restarts_is_a_count() -> None:
-    assert restarts(OmegaConf.create({"restarts": 2})) == 2
-    assert restarts(OmegaConf.create({})) == 0
-    with pytest.raises(UDEConfigError, match=r"train.restarts must be at least 0, but got -1"):
-        restarts(OmegaConf.create({"restarts": -1}))
+def test_restarts_is_a_count_whose_default_is_the_shipped_one() -> None:
+    assert TrainSettings.build(OmegaConf.create({"restarts": 0})).cycles == 1
+    assert TrainSettings.build(OmegaConf.create({})).restarts == shipped_default("train", "restarts") == 2
+    with pytest.raises(SettingError, match=r"train.restarts must be a whole number ≥ 0, but got -1"):
+        TrainSettings.build(OmegaConf.create({"restarts": -1}))

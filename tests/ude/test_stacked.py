@@ -12,8 +12,14 @@ from omegaconf import OmegaConf
 from physmend.config import ConfigError, compose
 from physmend.problem import load_problem
 from physmend.ude import TrainingDiverged, TrainResult, UDEConfigError, evaluate, load_hybrid, train
-from physmend.ude.stacked import _prepare, _Stack, stack_key, train_stack
-from physmend.ude.train import _evaluate, _sim_opts, checkpoint_problem, plan_shooting, reference
+from physmend.settings import training_settings
+from physmend.ude.timescale import resolve_settings
+from physmend.ude.stack import stack_key, train_stack
+from physmend.ude.stack.members import prepare
+from physmend.ude.stack.solve import Stack
+from physmend.ude.metrics import evaluate_with, checkpoint_problem
+from physmend.ude.reference import solver_options, reference
+from physmend.ude.shooting import plan_shooting
 from physmend.ude.warmstart import WARM_STATS, forget_warm_starts
 
 # the oscillator of tests/conftest.py; an explicit solver keeps whole-trajectory evaluations short
@@ -147,8 +153,8 @@ def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: 
     problem = load_problem(cfgs[0])
     ref = reference(problem, cfgs[0])
     plan = plan_shooting(problem, ref.batch, cfgs[0])
-    members = [_prepare(c, problem, ref, plan, i) for i, c in enumerate(cfgs)]
-    stack = _Stack(members, problem, ref, plan, cfgs[0])
+    members = [prepare(resolve_settings(training_settings(c), problem, ref), problem, ref, plan, i) for i, c in enumerate(cfgs)]
+    stack = Stack(members, problem, ref, plan, cfgs[0])
     masked = [(p, mk) for p, mk, _, _ in stack.params if mk is not None]
     assert len(masked) == 2 * 4 - 1  # weights and biases of 3 hidden layers and the output layer (its bias is not padded)
     for _ in range(3):
@@ -173,19 +179,19 @@ def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: 
     # one batched evaluation of all three gives each model's own metrics (to the solver tolerance:
     # the shared adaptive solve takes steps no single model would)
     # Checkpoints simulate the train and validation experiments only; `full` adds the test ones.
-    checkpoints, final = stack.evaluate([0, 1, 2], _sim_opts(cfgs[0])), stack.evaluate([0, 1, 2], _sim_opts(cfgs[0]), full=True)
+    checkpoints, final = stack.evaluate([0, 1, 2], solver_options(cfgs[0])), stack.evaluate([0, 1, 2], solver_options(cfgs[0]), full=True)
     assert any(e.role == "test" for e in problem.experiments)
     for i, mem in enumerate(stack.members):
         stack.write_back(i)
         for batched, of in ((checkpoints, checkpoint_problem(problem)), (final, problem)):
-            alone, _, _ = _evaluate(mem.hybrid, of, _sim_opts(cfgs[0]))
+            alone, _, _ = evaluate_with(mem.hybrid, of, solver_options(cfgs[0]))
             got = batched[i][0]
             assert set(got) == set(alone)
             for key, value in alone.items():
                 assert got[key] == pytest.approx(value, rel=1e-4), key
         assert "test.rmse" in final[i][0] and "test.rmse" not in checkpoints[i][0]
     # a failed batched solve falls back to solving each model alone, each failure its own outcome
-    outcomes = stack.evaluate([0, 2], {**_sim_opts(cfgs[0]), "method": "no-such-method"})
+    outcomes = stack.evaluate([0, 2], {**solver_options(cfgs[0]), "method": "no-such-method"})
     assert len(outcomes) == 2 and all(isinstance(o, TrainingDiverged) and "no-such-method" in str(o) for o in outcomes)
 
 
@@ -200,17 +206,18 @@ def test_checkpoints_of_records_on_different_clocks_are_solved_apart(short_proje
     problem = load_problem(cfgs[0])
     ref = reference(problem, cfgs[0])
     plan = plan_shooting(problem, ref.batch, cfgs[0])
-    stack = _Stack([_prepare(c, problem, ref, plan, i) for i, c in enumerate(cfgs)], problem, ref, plan, cfgs[0])
+    stack = Stack([prepare(resolve_settings(training_settings(c), problem, ref), problem, ref, plan, i) for i, c in enumerate(cfgs)],
+                  problem, ref, plan, cfgs[0])
     checked = checkpoint_problem(problem)
     assert [e.id for e in checked.experiments] == ["run1", "run2"]
     assert [exps for exps, _, _ in stack.parts] == [[0], [1]]
     # tight tolerances: the union-of-times solve and the separate ones step differently, and at
     # the default rtol their answers may differ by more than the rel 1e-4 compared here
-    sim = {**_sim_opts(cfgs[0]), "rtol": 1e-8, "atol": 1e-10}
+    sim = {**solver_options(cfgs[0]), "rtol": 1e-8, "atol": 1e-10}
     checkpoints = stack.evaluate([0, 1], sim)
     for i, mem in enumerate(stack.members):
         stack.write_back(i)
-        alone, _, _ = _evaluate(mem.hybrid, checked, sim)
+        alone, _, _ = evaluate_with(mem.hybrid, checked, sim)
         got, y = checkpoints[i]
         assert set(got) == set(alone)
         for key, value in alone.items():

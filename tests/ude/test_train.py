@@ -12,7 +12,8 @@ from physmend.config import ConfigError, compose
 from physmend.problem import load_problem
 from physmend.ude import TrainingDiverged, UDEConfigError, evaluate, load_hybrid, reference, train
 from physmend.ude.hybrid import HybridModel
-from physmend.ude.train import build_spec, chained_starts, plan_shooting, rk4_segments
+from physmend.ude.spec import build_spec
+from physmend.ude.shooting import chained_starts, plan_shooting, rk4_segments
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=60",
         "train.eval_every=20", "train.lr=0.02", "ude.width=16", "ude.depth=1", "train.patience=0",

@@ -17,7 +17,7 @@ from physmend.config import compose
 from physmend.problem import load_problem
 from physmend.ude import evaluate, reference
 from physmend.ude.hybrid import HybridModel
-from physmend.ude.train import build_spec
+from physmend.ude.spec import build_spec
 from physmend.ude.warmstart import fit_network, forced_trajectories, measured_states
 
 MODEL = textwrap.dedent(

@@ -3,13 +3,15 @@
 Imports go one way: a module imports only modules on its own line of this list or below it
 (each module's docstring names what it imports):
 
-* ``train`` (one model) and ``stacked`` (several as one batched solve; its pieces ``stack_members``,
-  ``stack``, ``stack_plan``, ``stack_net``) — the two trainers, siblings: neither imports the other;
+* ``train`` (one model) and ``stack`` (a package: several as one batched solve) — the two trainers,
+  siblings: neither imports the other; ``checkpoints`` (the rules both follow: best checkpoint,
+  patience, restarts, polishing) and ``polish`` (L-BFGS after Adam);
 * ``artifacts`` (plain files and figures of a trained model), ``io`` (reading them back),
   ``analysis`` and ``rates`` (what a trained model learned);
-* ``warmstart`` (derivative matching), ``schedule`` (learning rate per epoch), ``metrics``
+* ``warmstart`` (derivative matching), ``schedule`` (learning rate per epoch, cycles, patience), ``metrics``
   (whole-trajectory evaluation), ``outcome`` (``TrainResult``, ``TrainingDiverged``);
-* ``spec`` (the hybrid's specification from ``cfg.ude``), ``shooting`` (the plan of segments, RK4);
+* ``spec`` (the hybrid's specification from ``cfg.ude``; settings come typed and checked from
+  :mod:`physmend.settings`), ``shooting`` (the plan of segments, RK4);
 * ``reference`` (the model as written, solver options, sample masks), ``timescale`` (``auto`` time
   settings), ``hybrid`` (the hybrid model itself).
 """

@@ -16,7 +16,7 @@ from physmend.problem import Problem
 from physmend.simulate import Batch, make_batch
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import checkpoint_problem, hybrid_states
-from physmend.ude.reference import _sim_opts, train_mask
+from physmend.ude.reference import solver_options, train_mask
 
 
 @dataclass
@@ -53,7 +53,7 @@ def training_trajectories(hybrid: HybridModel, problem: Problem, cfg: Any) -> Hy
     with torch.no_grad():
         p = hybrid.parameters_for(batch.params)
         rhs = hybrid.rhs(p)
-        states = hybrid_states(hybrid, problem, batch, _sim_opts(cfg))
+        states = hybrid_states(hybrid, problem, batch, solver_options(cfg))
         x = batch.inputs.at(batch.t)
         mask = train_mask(problem, batch)
         pp = p[None].expand(states.shape[0], -1, -1)

@@ -17,7 +17,7 @@ from physmend.simulate import Batch, SimulationError, make_batch
 from physmend.simulate.initial import estimate_initial, has_unknown
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.reference import _sim_opts, train_mask, _val_mask, held_out_apart, simulate_with
+from physmend.ude.reference import solver_options, train_mask, _val_mask, held_out_apart, simulate_with
 
 
 def _pooled(err: torch.Tensor, mask: torch.Tensor) -> float:
@@ -35,7 +35,7 @@ def evaluate(hybrid: HybridModel, problem: Problem, cfg: Any | None = None, *, s
     training spread when their units differ); ``train.rmse`` likewise on training samples;
     ``rmse.<experiment>.<output>`` per experiment and output (test experiments: report only).
     """
-    return _evaluate(hybrid, problem, sim or _sim_opts(cfg))[0]
+    return evaluate_with(hybrid, problem, sim or solver_options(cfg))[0]
 
 
 def metrics_of(problem: Problem, batch: Batch, y: torch.Tensor) -> dict[str, float]:
@@ -111,7 +111,7 @@ def guarded(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor],
     return f
 
 
-def _evaluate(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor, Batch]:
+def evaluate_with(hybrid: HybridModel, problem: Problem, sim: dict[str, Any]) -> tuple[dict[str, float], torch.Tensor, Batch]:
     """Metrics, outputs ``(T, B, k)`` and batch of ``hybrid`` on every experiment of ``problem``.
 
     The outcome is judged on training and validation experiments only (see :func:`hybrid_states`):

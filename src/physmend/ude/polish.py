@@ -12,12 +12,10 @@ checkpoint by validation RMSE is still the one kept, so polishing can only help 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
 import math
 
 import torch
 
-from physmend.ude.hybrid import UDEConfigError
 
 #: remembered curvature pairs of L-BFGS
 HISTORY = 20
@@ -29,14 +27,6 @@ AT_NOISE = 2.0
 #: ``objective() -> (loss, fit)``: the loss L-BFGS minimises (its sum, for several models at once)
 #: and the fit part, each a tensor ``()`` or ``(M,)``
 Objective = Callable[[], tuple[torch.Tensor, torch.Tensor]]
-
-
-def polish_iterations(tc: Any) -> int:
-    """L-BFGS iterations after Adam: ``train.polish`` (a share of ``train.epochs``; 0: none)."""
-    share = float(tc.get("polish", 0.0))
-    if not share >= 0.0:
-        raise UDEConfigError(f"train.polish must be a share of train.epochs ≥ 0, but got {share!r}")
-    return int(round(share * int(tc.epochs)))
 
 
 def worth_polishing(fit: float, noise: float) -> bool:
@@ -95,11 +85,14 @@ class Polisher:
 
 
 def polish_lbfgs(objective: Objective, params: Sequence[torch.Tensor], iterations: int, every: int,
-                 checkpoint: Callable[[int, torch.Tensor, torch.Tensor], bool]) -> int:
+                 checkpoint: Callable[[int, torch.Tensor, torch.Tensor], bool],
+                 regroup: Callable[[], Sequence[torch.Tensor] | None] | None = None) -> int:
     """Minimise ``objective`` over ``params`` for at most ``iterations`` L-BFGS iterations, calling
     ``checkpoint(k, loss, fit)`` (k: iterations so far; the current loss and fit) after every
-    ``every`` of them; it returns True to stop. Ends at a step out of the finite range (parameters
-    of the last checkpoint restored) or when L-BFGS makes no more progress. Returns the iterations done."""
+    ``every`` of them; it returns True to stop. ``regroup()``, after a checkpoint that does not stop,
+    returns the parameters of a new L-BFGS when the set of models changed (some of a stack stopped),
+    else None. Ends at a step out of the finite range (parameters of the last checkpoint restored)
+    or when L-BFGS makes no more progress. Returns the iterations done."""
     polisher = Polisher(params)
     done = 0
     while done < iterations and polisher.opt is not None:
@@ -111,4 +104,7 @@ def polish_lbfgs(objective: Objective, params: Sequence[torch.Tensor], iteration
             loss, fit = objective()
         if checkpoint(done, loss, fit) or polisher.stalled:
             break
+        fresh = None if regroup is None else regroup()
+        if fresh is not None:
+            polisher = Polisher(fresh)
     return done

@@ -40,13 +40,13 @@ class Reference:
     divergence: list[Divergence] = field(default_factory=list)
 
 
-def _sim_opts(cfg: Any) -> dict[str, Any]:
-    return {
-        "method": str(cfg.simulate.method),
-        "rtol": float(cfg.simulate.rtol),
-        "atol": float(cfg.simulate.atol),
-        "options": dict(cfg.simulate.get("options") or {}),
-    }
+def solver_options(cfg: Any) -> dict[str, Any]:
+    """The whole-trajectory solver options of ``cfg.simulate`` (checked: :class:`physmend.settings.SimulateSettings`)."""
+    from physmend.settings import SimulateSettings, TrainingSettings
+
+    if isinstance(cfg, TrainingSettings):
+        return cfg.simulate.solver()
+    return SimulateSettings.build(cfg.simulate).solver()
 
 
 def _kinks(batch: Batch, method: str) -> dict[str, Any]:
@@ -102,7 +102,7 @@ def reference(problem: Problem, cfg: Any, *, bounded: bool = False) -> Reference
 
     # one shared clock: the reference's values at every row of the shared axis (the network's
     # normalisation, segment starts of hidden states) are the method's step ends, not interpolants
-    sim = _sim_opts(cfg)
+    sim = solver_options(cfg)
     sim = {**sim, "options": {**sim["options"], "clocks": None}}
 
     def outputs(sub: Batch, u0: torch.Tensor) -> torch.Tensor:

@@ -1,60 +1,30 @@
 """The optimiser's schedule: the learning-rate multiplier per epoch (``train.schedule``, the
 warm-up ramp after a warm start), the learning rate of every epoch for a stack member, and how
-segment starts follow a warm start (``train.segment_starts``). Imports ``hybrid`` only.
+the rules of restarts (``train.restarts``: :func:`stops_at`) and patience (``train.patience_fit_gain``:
+:func:`fit_progressed`). Every setting comes checked (:class:`physmend.settings.TrainSettings`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 import math
 
-from omegaconf import DictConfig
 import torch
 
-from physmend.ude.hybrid import UDEConfigError
+from physmend.settings import TrainSettings
 
 
-def _chain(tc: Any) -> bool:
-    """``train.segment_starts`` after a warm start: True for ``chained``, False for ``forced``."""
-    mode = str(tc.get("segment_starts", "chained"))
-    if mode not in ("chained", "forced"):
-        raise UDEConfigError(f"train.segment_starts must be 'chained' or 'forced', but got {mode!r}")
-    return mode == "chained"
-
-
-def lr_factor(tc: Any, epochs: int, *, warm: bool) -> Callable[[int], float]:
+def lr_factor(tc: TrainSettings, epochs: int, *, warm: bool) -> Callable[[int], float]:
     """Learning-rate multiplier per epoch: ``train.schedule`` (cosine | none), after a warm start
     ramped up linearly over ``train.warmup_epochs`` so the first steps do not undo it."""
-    schedule = str(tc.schedule)
-    if schedule not in ("cosine", "none"):
-        raise UDEConfigError(f"train.schedule must be 'cosine' or 'none', but got {schedule!r}")
-    ramp = max(0, int(tc.get("warmup_epochs", 0))) if warm else 0
+    schedule = tc.schedule
+    ramp = max(0, tc.warmup_epochs) if warm else 0
 
     def factor(epoch: int) -> float:
         f = 0.5 * (1 + math.cos(math.pi * min(epoch, epochs) / max(epochs, 1))) if schedule == "cosine" else 1.0
         return f * min(1.0, (epoch + 1) / ramp) if ramp else f
 
     return factor
-
-
-def restarts(tc: Any) -> int:
-    """``train.restarts``: how many more cycles of ``train.epochs`` (the schedule started again) a
-    model may get (:func:`stops_at`). A network that diverges at every checkpoint has not been
-    trained yet (a warm start outside its data, a record far from the others)."""
-    n = int(tc.get("restarts", 0))
-    if n < 0:
-        raise UDEConfigError(f"train.restarts must be at least 0, but got {n}")
-    return n
-
-
-def fit_gain(tc: Any) -> float:
-    """``train.patience_fit_gain``: the share by which an evaluation must lower the best training
-    RMSE so far to count as progress for patience too (0: only validation counts)."""
-    gain = float(tc.get("patience_fit_gain", 0.0))
-    if not 0.0 <= gain <= 0.5:
-        raise UDEConfigError(f"train.patience_fit_gain must be in [0, 0.5], but got {gain:g}")
-    return gain
 
 
 def fit_progressed(train_rmse: float, best_fit: float | None, gain: float) -> tuple[bool, float]:
@@ -84,10 +54,9 @@ def stops_at(epoch: int, epochs: int, good_cycle: int | None) -> bool:
     return good_cycle == 0 or good_cycle < ended
 
 
-def _lr_schedule(cfg: DictConfig, *, warm: bool) -> list[float]:
+def lr_schedule(tc: TrainSettings, *, warm: bool) -> list[float]:
     """The learning rate of every epoch, from the optimiser/scheduler pair train() uses."""
-    tc = cfg.train
-    epochs = int(tc.epochs)
+    epochs = tc.epochs
     dummy = torch.nn.Parameter(torch.zeros(1))
     opt = torch.optim.AdamW([dummy], lr=float(tc.lr))
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor(tc, epochs, warm=warm))

@@ -38,9 +38,10 @@ class Shooting:
 
 
 def plan_shooting(problem: Problem, batch: Batch, cfg: Any) -> Shooting:
-    from physmend.ude.timescale import resolved
+    from physmend.settings import training_settings
+    from physmend.ude.timescale import resolve_settings
 
-    cfg = resolved(cfg, problem)
+    cfg = resolve_settings(training_settings(cfg), problem)
     dt = float(cfg.train.step)
     seg = float(cfg.train.segment_length)
     if not (dt > 0 and seg >= dt):
@@ -248,7 +249,7 @@ def noise_fit(batch: Batch, mask: torch.Tensor, out_std: torch.Tensor) -> float:
     return total / count if count else float("nan")
 
 
-def _equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
+def equation_scale(problem: Problem, spec: HybridSpec, params_seg: torch.Tensor, ref: Reference) -> tuple[torch.Tensor, torch.Tensor]:
     """``a_i`` per segment ``(S, k)`` of the corrected equations ``a_i·der(x_i) = …`` and one
     reference size ``()``: the mean RMS of ``a_i·du_i/dt`` along the model-as-written simulation."""
     model = problem.model

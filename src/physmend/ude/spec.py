@@ -83,6 +83,9 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
 
     ``ude.corrected`` patterns select the corrected equations; a pattern that is a wildcard (``*``)
     leaves out definitional equations (:func:`identity_states`); naming one corrects it."""
+    from physmend.settings import training_settings
+
+    cfg = training_settings(cfg)
     ude = cfg.ude
     model = problem.model
     corrected = match_names(list(ude.corrected), model.state_names, "ude.corrected")
@@ -105,7 +108,7 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
         in_params = match_names(list(sel.parameters or []), model.parameter_names, "ude.inputs.parameters")
     if not (in_states or in_observed or in_inputs or in_params):
         raise UDEConfigError("ude.inputs selects no network input; enable states, inputs, observed or parameters")
-    estimated = [v.name for v in model.parameters if v.uncertain] if bool(cfg.train.estimate_parameters) else []
+    estimated = [v.name for v in model.parameters if v.uncertain] if cfg.train.estimate_parameters else []
     widths = [int(ude.width)] * int(ude.depth)
     mask = train_mask(problem, ref.batch)
     cm = problem.compiled
@@ -118,9 +121,7 @@ def build_spec(cfg: Any, problem: Problem, ref: Reference) -> HybridSpec:
         p = ref.batch.params[:, [cm.parameter_names.index(n) for n in in_params]]
         feats.append(p[None].expand(ref.states.shape[0], -1, -1))
     mean, std = _stats(torch.cat(feats, -1), mask)
-    units = str(ude.get("units", "equation"))
-    if units not in ("equation", "state"):
-        raise UDEConfigError(f"ude.units must be 'equation' or 'state', but got {units!r}")
+    units = ude.units
     idx = [cm.state_names.index(n) for n in corrected]
     d = ref.derivs[..., idx][mask]
     rms = _rms(d)

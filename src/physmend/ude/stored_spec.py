@@ -8,7 +8,7 @@ are checked against the user's own model *before* anything is built from them:
 * every name list (``corrected``, ``in_states``, ``in_observed``, ``in_inputs``, ``in_parameters``,
   ``estimated``) names, once each, things of the model of the right kind;
 * ``widths`` whole numbers within the configuration's bounds (``ude.width`` ≤
-  :data:`~physmend.config_check.MAX_UNITS`, ``ude.depth`` ≤ :data:`~physmend.config_check.MAX_LAYERS`),
+  :data:`~physmend.settings.MAX_UNITS`, ``ude.depth`` ≤ :data:`~physmend.settings.MAX_LAYERS`),
   so no network is allocated that would not fit in memory; ``activation`` and ``units`` known words;
 * the normalisation and scales finite numbers, one per network input, output or state;
 * ``weights.pt`` no larger than its network needs, read with ``weights_only`` (a pickle is never
@@ -29,7 +29,7 @@ from typing import Any
 
 import torch
 
-from physmend.config_check import MAX_LAYERS, MAX_UNITS
+from physmend.settings import MAX_LAYERS, MAX_UNITS
 from physmend.exceptions import PhysmendError
 from physmend.modeling.safe_parse import QUOTE, quoted
 from physmend.ude.hybrid import ACTIVATIONS, HybridSpec

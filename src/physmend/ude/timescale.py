@@ -32,6 +32,7 @@ Imports: ``physmend.config``, ``physmend.problem`` (the fastest time constant), 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -42,6 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from physmend.config import ConfigError
 from physmend.problem import fastest_time_constant
+from physmend.settings import TrainingSettings
 
 if TYPE_CHECKING:
     from physmend.problem import Problem
@@ -113,54 +115,25 @@ def time_scales(problem: Problem, reference: Any | None = None) -> TimeScales:
     return TimeScales(sample=sample, record=record, fastest=fastest)
 
 
-def _given(node: Any, group: str, key: str) -> float | None:
-    value = node.get(key, AUTO)
-    if value is None or (isinstance(value, str) and value.strip().lower() == AUTO):
-        return None
-    rule = (f"{group}.{key} must be a number of seconds > 0, but got {value!r} "
-            f"(or 'auto': derived from the sampling interval)")
-    if isinstance(value, bool):
-        raise TimeSettingError(rule)
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise TimeSettingError(rule) from None
-    if not (out > 0 and math.isfinite(out)):
-        raise TimeSettingError(rule)
-    return out
+def _given(value: Any) -> float | None:
+    """A time setting already checked (:mod:`physmend.settings`): None for ``auto``, else its number."""
+    return None if _is_auto(value) else float(value)
 
 
-def _count(node: Any, group: str, key: str, default: float) -> float:
-    value = node.get(key, default)
-    rule = f"{group}.{key} must be a number of sampling intervals > 0, but got {value!r}"
-    if isinstance(value, bool):
-        raise TimeSettingError(rule)
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        raise TimeSettingError(rule) from None
-    if not (out > 0 and math.isfinite(out)):
-        raise TimeSettingError(rule)
-    return out
-
-
-def resolve_times(cfg: Any, problem: Problem, reference: Any | None = None) -> DictConfig:
-    """A copy of ``cfg`` whose ``auto`` time settings are numbers (see the module docstring)."""
-    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    tc = out.train
-    sc = out.get("symbolic") or OmegaConf.create({})
-    scales = time_scales(problem, reference)
+def train_times(tc: Any, scales: TimeScales) -> tuple[float, float, float]:
+    """``(train.step, train.segment_length, train.warm_window)`` of the ``train`` settings ``tc``
+    (:class:`physmend.settings.TrainSettings`) on data and a model with time scales ``scales``: the
+    ``auto`` ones derived (see the module docstring), the given ones checked against the record."""
     d, record = scales.sample, scales.record
-
-    segment = _given(tc, "train", "segment_length")
+    segment = _given(tc.segment_length)
     if segment is None:
-        segment = min(_count(tc, "train", "segment_samples", 60) * d, record / 4)
+        segment = min(float(tc.segment_samples) * d, record / 4)
     elif segment > record * (1 + 1e-9):
         raise TimeSettingError(
             f"train.segment_length = {segment:g} is longer than the shortest training record ({record:g} time "
             f"units): give a shorter one, or train.segment_length=auto (train.segment_samples sampling intervals)"
         )
-    step = _given(tc, "train", "step")
+    step = _given(tc.step)
     if step is None:
         limit = STABLE_RK4 * scales.fastest
         step = min(d / 2, limit)
@@ -172,15 +145,49 @@ def resolve_times(cfg: Any, problem: Problem, reference: Any | None = None) -> D
         )
     if segment < step:
         segment = step * 2
-    warm = _given(tc, "train", "warm_window")
+    warm = _given(tc.warm_window)
     if warm is None:
-        warm = max(2 * d, min(_count(tc, "train", "warm_window_samples", 10) * d, record / 10))
-    window = _given(sc, "symbolic", "window") if "symbolic" in out else None
+        warm = max(2 * d, min(float(tc.warm_window_samples) * d, record / 10))
+    return float(step), float(segment), float(warm)
+
+
+def _window(sc: Any, scales: TimeScales) -> float:
+    """``symbolic.window`` of the ``symbolic`` group ``sc``: ``auto`` derived, else as given."""
+    from physmend.config_check import check_value
+    from physmend.settings import shipped_group
+
+    defaults = shipped_group("symbolic")
+    value = check_value("symbolic.window", sc.get("window", defaults["window"]), defaults["window"])
+    window = _given(value)
     if window is None:
-        window = max(3 * d, min(_count(sc, "symbolic", "window_samples", 30) * d, record / 10))
-    tc.step, tc.segment_length, tc.warm_window = float(step), float(segment), float(warm)
+        samples = check_value("symbolic.window_samples", sc.get("window_samples", defaults["window_samples"]),
+                              defaults["window_samples"])
+        d, record = scales.sample, scales.record
+        window = max(3 * d, min(float(samples) * d, record / 10))
+    return float(window)
+
+
+def resolve_settings(settings: TrainingSettings, problem: Problem, reference: Any | None = None) -> TrainingSettings:
+    """``settings`` with the ``auto`` times made numbers from the data and the model (:func:`train_times`);
+    ``settings`` itself when they are numbers already. ``reference``: as :func:`time_scales` takes it."""
+    if settings.times_resolved:
+        return settings
+    step, segment, warm = train_times(settings.train, time_scales(problem, reference))
+    train = dataclasses.replace(settings.train, step=step, segment_length=segment, warm_window=warm)
+    return dataclasses.replace(settings, train=train)
+
+
+def resolve_times(cfg: Any, problem: Problem, reference: Any | None = None) -> DictConfig:
+    """A copy of the configuration ``cfg`` whose ``auto`` time settings are numbers (see the module
+    docstring; :func:`resolve_settings` resolves a :class:`~physmend.settings.TrainingSettings`)."""
+    from physmend.settings import TrainSettings
+
+    out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    scales = time_scales(problem, reference)
+    tc = out.train
+    tc.step, tc.segment_length, tc.warm_window = train_times(TrainSettings.build(tc), scales)
     if "symbolic" in out:
-        out.symbolic.window = float(window)
+        out.symbolic.window = _window(out.symbolic, scales)
     return out
 
 
@@ -193,7 +200,6 @@ def describe(cfg: Any) -> str:
 
 
 GIB = 1024.0**3
-DEFAULT_MEMORY_LIMIT_GIB = 2.0
 
 
 def plan_bytes(plan: Any, problem: Problem, cfgs: list[Any]) -> float:
@@ -220,15 +226,10 @@ def steps_bytes(steps: int, segments: int, problem: Problem, cfgs: list[Any]) ->
 
 
 def memory_limit(cfg: Any) -> float:
-    """``train.memory_limit_gib`` of ``cfg`` (GiB), checked."""
-    limit = cfg.train.get("memory_limit_gib", DEFAULT_MEMORY_LIMIT_GIB)
-    try:
-        limit = float(limit)
-    except (TypeError, ValueError):
-        raise TimeSettingError(f"train.memory_limit_gib must be a number of GiB > 0, but got {limit!r}") from None
-    if not limit > 0:
-        raise TimeSettingError(f"train.memory_limit_gib must be a number of GiB > 0, but got {limit!r}")
-    return limit
+    """``train.memory_limit_gib`` of ``cfg`` (GiB), checked (:mod:`physmend.settings`)."""
+    from physmend.settings import training_settings
+
+    return float(training_settings(cfg).train.memory_limit_gib)
 
 
 def check_budget(plan: Any, problem: Problem, cfgs: list[Any]) -> None:
@@ -255,8 +256,11 @@ def _is_auto(value: Any) -> bool:
 
 
 def resolved(cfg: Any, problem: Problem) -> Any:
-    """``cfg`` itself when its time settings are numbers already, else :func:`resolve_times` of it
+    """``cfg`` itself when its time settings are numbers already, else its times resolved: a
+    :class:`~physmend.settings.TrainingSettings` by :func:`resolve_settings`, a configuration by :func:`resolve_times`
     (for entry points that may be called with a freshly composed configuration)."""
+    if isinstance(cfg, TrainingSettings):
+        return resolve_settings(cfg, problem)
     tc = cfg.train
     keys = [tc.get("step", AUTO), tc.get("segment_length", AUTO), tc.get("warm_window", AUTO)]
     if "symbolic" in cfg:

@@ -333,21 +333,19 @@ def forget_warm_starts() -> None:
 
 def warm_start(hybrid: HybridModel, problem: Problem, batch: Batch, cfg: Any) -> Forced | None:
     """Collocation warm start per ``cfg.train.warm_start`` (``auto`` | ``none``); the forced trajectories or None."""
-    mode = str(cfg.train.get("warm_start", "auto"))
-    if mode == "none":
+    from physmend.settings import training_settings
+
+    cfg = training_settings(cfg)
+    if cfg.train.warm_start == "none":
         return None
-    if mode != "auto":
-        from physmend.ude.hybrid import UDEConfigError
+    from physmend.ude.timescale import resolve_settings
 
-        raise UDEConfigError(f"train.warm_start must be 'auto' or 'none', but got {mode!r}")
-    from physmend.ude.timescale import resolved
-
-    cfg = resolved(cfg, problem)
+    cfg = resolve_settings(cfg, problem)
     forced = forced_trajectories(problem, batch, hybrid, float(cfg.train.step))
     if forced is None:
         return None
-    window = max(1, int(round(float(cfg.train.get("warm_window", 0.0)) / float(cfg.train.step))))
-    iterations = int(cfg.train.get("warm_iterations", 400))
+    window = cfg.train.warm_window_steps
+    iterations = cfg.train.warm_iterations
     key = warm_key(hybrid, forced, batch.params[forced.exp_index], iterations, window)
     if not recall(key, hybrid):
         fit_network(hybrid, problem, batch, forced, iterations=iterations, window=window)

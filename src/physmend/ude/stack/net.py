@@ -13,12 +13,12 @@ import torch
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, UDEConfigError
 
 
-def _linears(hybrid: HybridModel) -> list[nn.Linear]:
+def linears(hybrid: HybridModel) -> list[nn.Linear]:
     return [m for m in hybrid.net if isinstance(m, nn.Linear)]
 
 
 @dataclass
-class _Net:
+class StackedNet:
     """``M`` MLPs padded to one shape: layer ``l`` maps ``h (M, N, a)`` to ``baddbmm(b, h, W)``.
 
     Shapes: ``weights[l] (M, a_l, b_l)`` (transposed ``nn.Linear`` weights), ``biases[l] (M, 1, b_l)``;
@@ -67,9 +67,9 @@ class _Net:
             h = a if use is None else torch.where(use, a, h)
         raise AssertionError("a network has an output layer")
 
-    def select(self, rows: torch.Tensor) -> _Net:
+    def select(self, rows: torch.Tensor) -> StackedNet:
         """The networks of stack rows ``rows`` (no gradients)."""
-        return _Net(
+        return StackedNet(
             weights=[w.detach()[rows] for w in self.weights],
             biases=[b.detach()[rows] for b in self.biases],
             use=[None if u is None else u[rows] for u in self.use],
@@ -78,7 +78,7 @@ class _Net:
         )
 
 
-def _pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[_Net, list[torch.Tensor | None]]:
+def pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[StackedNet, list[torch.Tensor | None]]:
     """Padded stacked networks copied from ``hybrids``, and boolean masks of each layer's real entries."""
     m = len(hybrids)
     specs = [h.spec for h in hybrids]
@@ -96,7 +96,7 @@ def _pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[_
     b_mask = [torch.zeros(m, 1, b, dtype=torch.bool) for _, b in dims]
     with torch.no_grad():
         for i, hybrid in enumerate(hybrids):
-            lins = _linears(hybrid)
+            lins = linears(hybrid)
             slots = list(range(len(lins) - 1)) + [depth]  # the output layer is always the last one
             for lin, l in zip(lins, slots):
                 a, b = lin.in_features, lin.out_features
@@ -109,16 +109,16 @@ def _pad_networks(hybrids: Sequence[HybridModel], dtype: torch.dtype) -> tuple[_
         rows = torch.tensor([d > l for d in depths]).reshape(m, 1, 1)
         use.append(None if bool(rows.all()) else rows)
     scale = torch.stack([h.out_scale * h.out_mask for h in hybrids])[:, None, :].to(dtype)
-    net = _Net(weights, biases, use, [s.activation for s in specs], scale)
+    net = StackedNet(weights, biases, use, [s.activation for s in specs], scale)
     masks: list[torch.Tensor | None] = []
     for mk in [x for pair in zip(w_mask, b_mask) for x in pair]:
         masks.append(None if bool(mk.all()) else mk)
     return net, masks
 
 
-def _write_back(net: _Net, row: int, hybrid: HybridModel, est_raw: torch.Tensor | None) -> None:
+def write_back_row(net: StackedNet, row: int, hybrid: HybridModel, est_raw: torch.Tensor | None) -> None:
     """Copy stack row ``row`` into ``hybrid``'s own (unpadded) layers and estimates."""
-    lins = _linears(hybrid)
+    lins = linears(hybrid)
     depth = len(net.weights) - 1
     slots = list(range(len(lins) - 1)) + [depth]
     with torch.no_grad():

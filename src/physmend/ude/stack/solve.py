@@ -1,65 +1,57 @@
 """The stack: M hybrid models trained as one batched multiple-shooting solve — losses, the batched
-AdamW step with per-model clipping, the batched warm start, chained starts, checkpoint evaluations.
-Imports ``hybrid``, ``stack_net``, ``stack_plan``, ``metrics``, ``outcome``, ``reference``, ``shooting``,
-``schedule``, ``warmstart`` (never ``train``: the single-model trainer and the stack are siblings).
+AdamW step with per-model clipping, the batched warm start, chained starts; its checkpoint
+evaluations come from :class:`~physmend.ude.stack.evaluation.StackEvaluation`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 import dataclasses
-import math
 
-from omegaconf import DictConfig
 import torch
 
 from physmend.problem import Problem
-from physmend.simulate.initial import estimate_initial
-from physmend.simulate import Batch, make_batch
+from physmend.settings import TrainingSettings
+from physmend.ude.checkpoints import Checkpoints
+from physmend.simulate import make_batch
 from physmend.ude.drive import Drives, columns, drivable, physics_drive, split_first_layer, with_physics
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec
-from physmend.ude.stack_net import _Net, _pad_networks, _write_back
-from physmend.ude.stack_plan import _plan_key, _time_grid_parts
-from physmend.ude.metrics import LEAVE_MARGIN, _evaluate, checkpoint_problem, guarded, metrics_of
-from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.reference import Reference, train_mask, simulate_with
-from physmend.ude.shooting import Shooting, _equation_scale, output_spread, chained_starts, pinned_starts, rk4_segments, BOX_MARGIN
-from physmend.ude.schedule import _chain
-from physmend.ude.warmstart import Forced, fit_models, recall_derived, remember_derived, warm_key
+from physmend.ude.stack.net import StackedNet, pad_networks
+from physmend.ude.stack.evaluation import StackEvaluation
+from physmend.ude.stack.plan import plan_key, time_grid_parts
+from physmend.ude.metrics import checkpoint_problem
+from physmend.ude.reference import Reference, train_mask
+from physmend.ude.shooting import Shooting, equation_scale, output_spread, chained_starts, pinned_starts, rk4_segments, BOX_MARGIN
+from physmend.ude.warmstart import Forced, fit_models, recall_derived, remember_derived
 
 
 @dataclass
-class _Member:
+class Member:
     """One trial of the stack: everything that is its own outside the stacked tensors."""
 
     slot: int  # index into cfgs (and the result list)
-    cfg: DictConfig
+    cfg: TrainingSettings  # its settings, times resolved
     hybrid: HybridModel
     forced: Forced | None
     seg0: torch.Tensor  # (S, n)
     lrs: list[float]  # learning rate of epochs 1..E (as train()'s scheduler gives them)
-    history: list[dict[str, float]] = field(default_factory=list)
-    best: tuple[float, dict[str, Any], dict[str, float]] | None = None
-    since_best: int = 0
-    best_fit: float | None = None  # the best whole-trajectory training RMSE so far (train.patience_fit_gain)
-    good_cycle: int | None = None  # the training cycle of its first checkpoint that could be simulated
+    marks: Checkpoints  # its checkpoints: history, best, patience, cycle (shared with train())
     outcome: BaseException | None = None  # set when the model stops with an error
-    failed: TrainingDiverged | None = None  # the last checkpoint whose whole trajectory failed (dropped)
     done: bool = False
     warm_key: str | None = None  # its stored warm start (:func:`physmend.ude.warmstart.warm_key`), if batched
 
 
-class _Stack:
+class Stack(StackEvaluation):
     """The active models' stacked trainable tensors, their AdamW state, and the batched solves."""
 
     BETAS = (0.9, 0.999)
     EPS = 1e-8
     MAX_NORM = 10.0
 
-    def __init__(self, members: list[_Member], problem: Problem, ref: Reference, plan: Shooting, cfg: DictConfig) -> None:
-        order = list(ACTIVATIONS)  # models of one activation side by side (see _Net)
+    def __init__(self, members: list[Member], problem: Problem, ref: Reference, plan: Shooting, cfg: TrainingSettings) -> None:
+        order = list(ACTIVATIONS)  # models of one activation side by side (see StackedNet)
         members = sorted(members, key=lambda mem: order.index(mem.hybrid.spec.activation))
         self.members = members
         self.problem = problem
@@ -68,7 +60,7 @@ class _Stack:
         self.template = members[0].hybrid  # index lists, normalisation: the same for every model
         dtype = problem.dtype
         self.dtype = dtype
-        self.net, masks = _pad_networks([m.hybrid for m in members], dtype)
+        self.net, masks = pad_networks([m.hybrid for m in members], dtype)
         self.spec: HybridSpec = self.template.spec
         self.est_idx = self.template.est_idx
         self.seg0 = torch.stack([m.seg0 for m in members])  # (M, S, n)
@@ -86,7 +78,7 @@ class _Stack:
         self.exp_avg_sq = [torch.zeros_like(p) for p, *_ in self.params]
         self.step_count = 0
         self.weight_decay = torch.tensor([float(m.cfg.train.weight_decay) for m in members], dtype=dtype)
-        self.sparsity = torch.tensor([float(m.cfg.train.get("sparsity", 0.0)) for m in members], dtype=dtype)
+        self.sparsity = torch.tensor([m.cfg.train.sparsity for m in members], dtype=dtype)
         self.mean = self.template.mean
         self.std = self.template.std
         # shared pieces of the training solve (as in train())
@@ -100,12 +92,12 @@ class _Stack:
         self.params_seg = ref.batch.params[plan.exp_index]
         self.has_next = plan.next_of >= 0
         self.cont_w = float(cfg.train.continuity_weight)
-        self.eq_coef, self.eq_ref = (_equation_scale(problem, self.spec, self.params_seg, ref)
+        self.eq_coef, self.eq_ref = (equation_scale(problem, self.spec, self.params_seg, ref)
                                      if bool((self.sparsity > 0).any()) and self.spec.corrected else (None, None))
         self.checked = checkpoint_problem(problem)  # checkpoints simulate train/validation experiments only
         self.eval_batch = make_batch(self.checked.experiments, problem.compiled, dtype)
         self.full_batch = self.eval_batch if self.checked is problem else make_batch(problem.experiments, problem.compiled, dtype)
-        self.parts = _time_grid_parts(self.checked, self.eval_batch)
+        self.parts = time_grid_parts(self.checked, self.eval_batch)
         self._rows_changed()
 
     # -- bookkeeping ----------------------------------------------------------------------------------
@@ -161,7 +153,7 @@ class _Stack:
         """The corrected equations' ``a_i(p)`` ``(rows, k)`` (None when the network gives rates)."""
         return None if self.template.coefficients is None else self.template.equation_coefficients(p)
 
-    def _corrections(self, net: _Net, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor,
+    def _corrections(self, net: StackedNet, m: int, u: torch.Tensor, x: torch.Tensor, p: torch.Tensor,
                      coef: torch.Tensor | None) -> torch.Tensor:
         """Corrections ``(..., m·R, k)`` of ``u (..., m·R, n)``: each model's rows through its own
         network; ``coef (m·R, k)``: the equations' ``a_i(p)`` (None: rates, nothing to divide by)."""
@@ -175,7 +167,7 @@ class _Stack:
         out = net(zz).reshape(m, *lead, r, -1).movedim(0, -3).reshape(*lead, rows, -1)
         return out if coef is None else out / coef
 
-    def _rhs(self, net: _Net, m: int, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
+    def _rhs(self, net: StackedNet, m: int, p: torch.Tensor) -> Callable[[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``f(u, x) -> du/dt`` over stacked rows, structured as :meth:`HybridModel.rhs`."""
         physics = self.problem.compiled.bind(p)
         idx = self.template.corrected_idx
@@ -197,7 +189,7 @@ class _Stack:
 
         return f
 
-    def _drive(self, net: _Net, m: int, p: torch.Tensor, xs: torch.Tensor,
+    def _drive(self, net: StackedNet, m: int, p: torch.Tensor, xs: torch.Tensor,
                shared: tuple[torch.Tensor, torch.Tensor] | None = None
                ) -> tuple[Callable[[torch.Tensor, Any], torch.Tensor], Drives] | None:
         """:meth:`_rhs` with what does not depend on the state computed once for the half-step inputs
@@ -320,10 +312,10 @@ class _Stack:
         it (``train.segment_starts: chained``) chained by its own hybrid, as train() does. They follow
         from the warm start and the shooting plan alone: a model whose warm start an earlier stack of
         this process had, on the same plan, reuses that stack's chained starts."""
-        want = [i for i, mem in enumerate(self.members) if mem.forced is not None and _chain(mem.cfg.train)]
+        want = [i for i, mem in enumerate(self.members) if mem.forced is not None and mem.cfg.train.chained]
         if not want:
             return
-        name = ("chained", _plan_key(self.plan))
+        name = ("chained", plan_key(self.plan))
         todo = []
         for i in want:
             key = self.members[i].warm_key
@@ -349,82 +341,3 @@ class _Stack:
             key = self.members[i].warm_key
             if key is not None:
                 remember_derived(key, name, chained[j].clone())
-
-    # -- evaluation ----------------------------------------------------------------------------------------
-    def evaluate(self, positions: list[int], sim: dict[str, Any], *, full: bool = False
-                 ) -> list[tuple[dict[str, float], torch.Tensor] | BaseException]:
-        """Whole-trajectory metrics of the models at ``positions`` in one batched solve (per model on failure).
-
-        Checkpoints simulate the train and validation experiments; ``full`` every experiment
-        (test ones included), as a final evaluation does, with outputs at every time of the batch
-        (for figures). Checkpoint experiments recorded at different times are solved apart
-        (:func:`_time_grid_parts`): each set of rows takes only its own steps.
-        """
-        m = len(positions)
-        problem = self.problem if full else self.checked
-        batch = self.full_batch if full else self.eval_batch
-        b = batch.size
-        rows = torch.tensor(positions, dtype=torch.long)
-        net = self.net.select(rows)
-        est = None if self.est_raw is None else self.est_raw.detach()[rows]
-        parts = [(list(range(b)), batch, None)] if full else self.parts
-        try:
-            with torch.no_grad():
-                if len(parts) == 1:
-                    y = self._simulate(net, est, positions, batch, sim)
-                else:  # (T, M, B, k) on the union of times; each experiment set only where it has times
-                    y = torch.full((batch.t.shape[0], m, b, len(self.problem.compiled.output_names)), math.nan,
-                                   dtype=self.dtype)
-                    for exps, part, at in parts:
-                        y_part = self._simulate(net, est, positions, part, sim)
-                        y[at[:, None], :, torch.tensor(exps)[None, :]] = y_part.reshape(-1, m, len(exps), y.shape[-1]).movedim(1, 2)
-                    y = y.reshape(y.shape[0], m * b, -1)
-        except Exception:  # noqa: BLE001 - one model's failure must not end the others: solve each alone
-            return [self._evaluate_alone(i, sim, problem) for i in positions]
-        out: list[tuple[dict[str, float], torch.Tensor] | BaseException] = []
-        for j in range(m):
-            y_j = y[:, j * b:(j + 1) * b]
-            try:
-                out.append((metrics_of(problem, batch, y_j), y_j))
-            except TrainingDiverged as exc:
-                out.append(exc)
-        return out
-
-    def _simulate(self, net: _Net, est: torch.Tensor | None, positions: list[int], batch: Batch,
-                  sim: dict[str, Any]) -> torch.Tensor:
-        """Outputs ``(T, M·B, k)`` of the models at ``positions`` (networks ``net``, estimates ``est``)
-        on every experiment of ``batch``, rows model-major, in one adaptive solve."""
-        m, b = len(positions), batch.size
-        rep = torch.arange(b).repeat(m)
-        names = [f"{self.members[i].slot}:{e}" for i in positions for e in batch.ids]
-        batch_m = batch.take(rep, ids=names)
-        limits = self.members[0].hybrid.spec.box(LEAVE_MARGIN, self.problem.dtype)
-
-        def outputs(rows: Batch, u0: torch.Tensor) -> torch.Tensor:
-            """Rows model-major, the same experiments for every model (as every caller here builds them)."""
-            p = self._parameters_for(rows.params[: rows.size // m], est, m)  # (M·R, n_params)
-            rhs = guarded(self._rhs(net, m, p), limits, rows.ids, self.problem.compiled.state_names)
-            states = simulate_with(rhs, rows, u0, sim)
-            return self.problem.compiled.outputs(states, rows.inputs.at(rows.t), p[None])
-
-        # declared-unknown initial values: each model's own estimates (a failed candidate solve is
-        # raised: the caller then evaluates each model alone, where failures are isolated)
-        key = tuple(names)
-        u0 = estimate_initial(outputs, batch_m, self.problem.compiled.state_names, isolate=False,
-                              near=self.initial_estimates.get(key))
-        if any(batch_m.initial_ranges):
-            self.initial_estimates[key] = u0  # the next checkpoint of these models starts about them
-        return outputs(batch_m, u0)  # (T, M·B, k)
-
-    def _evaluate_alone(self, position: int, sim: dict[str, Any], problem: Problem
-                        ) -> tuple[dict[str, float], torch.Tensor] | BaseException:
-        member = self.members[position]
-        self.write_back(position)
-        try:
-            metrics, y, _ = _evaluate(member.hybrid, problem, sim)
-        except Exception as exc:  # noqa: BLE001 - what train() would have raised for this model
-            return exc
-        return metrics, y
-
-    def write_back(self, position: int) -> None:
-        _write_back(self.net, position, self.members[position].hybrid, self.est_raw)

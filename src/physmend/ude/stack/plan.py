@@ -12,33 +12,33 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch, make_batch
-from physmend.ude.reference import Reference, _sim_opts, reference
+from physmend.ude.reference import Reference, solver_options, reference
 from physmend.ude.shooting import Shooting, plan_shooting
 
 
-def _plan_key(plan: Shooting) -> tuple[Any, ...]:
+def plan_key(plan: Shooting) -> tuple[Any, ...]:
     """What identifies a shooting plan's segments (step, steps per segment, starts, experiments)."""
     return (plan.dt, plan.steps, tuple(plan.starts.tolist()), tuple(plan.exp_index.tolist()))
 
 
 #: reference simulations and shooting plans of the last few problems this process trained on: every
 #: stack of a sweep shares them (they depend on the problem and the solver and shooting settings only)
-_SETUPS: dict[int, tuple[Problem, dict[Any, Reference], dict[Any, Shooting]]] = {}
+SETUPS: dict[int, tuple[Problem, dict[Any, Reference], dict[Any, Shooting]]] = {}
 
-_SETUPS_MAX = 4
+SETUPS_MAX = 4
 
 
-def _setup(problem: Problem, cfg: DictConfig, *, plan: bool = True) -> tuple[Reference, Shooting | None]:
+def setup(problem: Problem, cfg: DictConfig, *, plan: bool = True) -> tuple[Reference, Shooting | None]:
     """``(reference(problem, cfg), plan_shooting(problem, ref.batch, cfg))``, computed once per
     problem, solver settings and shooting settings in this process (``plan=False``: no plan)."""
-    entry = _SETUPS.get(id(problem))
+    entry = SETUPS.get(id(problem))
     if entry is None or entry[0] is not problem:
-        if len(_SETUPS) >= _SETUPS_MAX:
-            _SETUPS.pop(next(iter(_SETUPS)))
-        entry = _SETUPS[id(problem)] = (problem, {}, {})
+        if len(SETUPS) >= SETUPS_MAX:
+            SETUPS.pop(next(iter(SETUPS)))
+        entry = SETUPS[id(problem)] = (problem, {}, {})
     _, refs, plans = entry
     # a reference lives on one device (physmend.device): computed once per device
-    ref_key = json.dumps([_sim_opts(cfg), str(torch.get_default_device())], sort_keys=True, default=str)
+    ref_key = json.dumps([solver_options(cfg), str(torch.get_default_device())], sort_keys=True, default=str)
     ref = refs.get(ref_key)
     if ref is None:
         ref = refs[ref_key] = reference(problem, cfg, bounded=True)  # within the data where the model diverges
@@ -51,7 +51,7 @@ def _setup(problem: Problem, cfg: DictConfig, *, plan: bool = True) -> tuple[Ref
     return ref, shooting
 
 
-def _time_grid_parts(problem: Problem, batch: Batch) -> list[tuple[list[int], Batch, torch.Tensor | None]]:
+def time_grid_parts(problem: Problem, batch: Batch) -> list[tuple[list[int], Batch, torch.Tensor | None]]:
     """``batch``'s experiments in sets that share their times and input knots: ``(indices into batch,
     their own batch, their times' rows in batch.t)``; one set ``(all, batch, None)`` when all share.
 

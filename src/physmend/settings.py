@@ -256,6 +256,7 @@ class TrainSettings(_Group):
     segment_starts: str = setting("word", choices=("chained", "forced"))
     warmup_epochs: int = setting("int")
     sparsity: float = setting("float")
+    backward: str = setting("word", choices=("autograd", "adjoint"))
     memory_limit_gib: float = setting("float", low=None)
 
     @property

@@ -16,6 +16,7 @@ from physmend.ude.drive import hybrid_drive
 from physmend.ude.shooting import BOX_MARGIN, rk4_segments
 
 from tests.ude.test_drive import VARIANTS, _setup
+from tests.ude.test_stacked import _cfg, short_project  # noqa: F401 - the fixture
 
 DT = torch.float64
 
@@ -100,3 +101,35 @@ def test_the_hybrid_solve_is_the_drive_solve(user_project: Path, monkeypatch: py
         for a, b in zip(got, want):
             assert float(b.abs().max()) > 0
             torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_training_with_the_adjoint_is_training_with_autograd(short_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``train.backward: adjoint`` trains the same models as autograd, alone and in a stack (the
+    gradients agree to rounding; a few epochs of Adam keep them within ~1e-9)."""
+    from physmend.problem import load_problem
+    from physmend.ude import TrainResult, train
+    from physmend.ude.adjoint import STATS
+    from physmend.ude.stack import train_stack
+    from physmend.ude.warmstart import forget_warm_starts
+
+    monkeypatch.chdir(short_project)
+    trials = [["seed=1", "ude.width=8", "ude.depth=2", "ude.activation=tanh", "train.lr=0.02"],
+              ["seed=2", "ude.width=12", "ude.depth=2", "ude.activation=tanh", "train.lr=0.01"]]
+
+    def run(backward: str) -> list[TrainResult]:
+        forget_warm_starts()
+        cfgs = [_cfg(short_project, *t, f"train.backward={backward}") for t in trials]
+        problem = load_problem(cfgs[0])
+        return [train(cfgs[0], problem), *train_stack(cfgs, problem, figures=False)]
+
+    before = STATS["solves"]
+    want = run("autograd")
+    assert STATS["solves"] == before  # autograd: not used
+    got = run("adjoint")
+    assert STATS["solves"] == before + 2 * 4  # every epoch (train.epochs=4) of the single model and of the stack
+    for a, b in zip(got, want):
+        assert isinstance(a, TrainResult) and isinstance(b, TrainResult)
+        ours, theirs = a.hybrid.state_dict(), b.hybrid.state_dict()
+        for key in theirs:
+            torch.testing.assert_close(ours[key], theirs[key], rtol=1e-8, atol=1e-11, msg=key)
+        assert a.val_rmse == pytest.approx(b.val_rmse, rel=1e-8)

@@ -25,6 +25,7 @@ from physmend.problem import Problem
 from physmend.settings import training_settings
 from physmend.ude.artifacts import artifacts_of, fit_figures
 from physmend.ude.checkpoints import Checkpoints, evaluation_due, last_epoch
+from physmend.ude.adjoint import adjoint_applies, hybrid_solve
 from physmend.ude.drive import drivable, hybrid_drive
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.metrics import checkpoint_problem, evaluate_with
@@ -125,6 +126,7 @@ def _train(settings: Any, problem: Problem, report: Callable[[int, dict[str, flo
 
     fast = drivable(hybrid)
     shared = fast and problem.compiled.shares_matrices(int(torch.unique(plan.exp_index).numel()))
+    adjoint = tc.backward == "adjoint" and adjoint_applies(hybrid)
 
     def objective() -> tuple[torch.Tensor, torch.Tensor]:
         """The multiple-shooting loss of the current network, segment starts and estimates."""
@@ -134,7 +136,9 @@ def _train(settings: Any, problem: Problem, report: Callable[[int, dict[str, flo
         else:
             p = hybrid.parameters_for(params_seg)
         u0 = torch.where(pinned, fixed_first, torch.clamp(seg0 + free * state_scale, lo, hi))
-        if fast:  # the same function with fewer operations per evaluation (physmend.ude.drive)
+        if adjoint:  # the same solve, its backward pass written by hand (physmend.ude.adjoint)
+            traj = hybrid_solve(hybrid, p_exp, u0, plan, box, plan.exp_index) if shared else hybrid_solve(hybrid, p, u0, plan, box)
+        elif fast:  # the same function with fewer operations per evaluation (physmend.ude.drive)
             rhs, drives = (hybrid_drive(hybrid, p_exp, plan.x_half, plan.exp_index) if shared
                            else hybrid_drive(hybrid, p, plan.x_half))
             traj = rk4_segments(rhs, u0, plan, box, drives)  # (K+1, S, n)

@@ -28,6 +28,7 @@ SHARED_KEYS: tuple[str, ...] = (
     "train.patience_fit_gain",
     "train.continuity_weight",
     "train.estimate_parameters",
+    "train.backward",
     "ude.corrected",
     "ude.inputs",
 )

@@ -16,6 +16,7 @@ from physmend.problem import Problem
 from physmend.settings import TrainingSettings
 from physmend.ude.checkpoints import Checkpoints
 from physmend.simulate import make_batch
+from physmend.ude.adjoint import ACTIVATIONS as ADJOINT_ACTIVATIONS, rk4_adjoint
 from physmend.ude.drive import Drives, columns, drivable, physics_drive, split_first_layer, with_physics
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec
 from physmend.ude.stack.net import StackedNet, pad_networks
@@ -222,6 +223,37 @@ class Stack(StackEvaluation):
 
         return f, Drives(physics, pre.reshape(xs.shape[0], m, r, -1))
 
+    def _adjoint(self, net: StackedNet, m: int, p: torch.Tensor, u0: torch.Tensor, plan: Shooting,
+                 shared: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor | None:
+        """The training solve's trajectory ``(K+1, m·R, n)`` with the hand-written backward pass
+        (``train.backward: adjoint``, :mod:`physmend.ude.adjoint`): the drive form of :meth:`_drive`
+        with one activation and one depth for the whole stack; None where that does not apply."""
+        h = self.template
+        if (self.members[0].cfg.train.backward != "adjoint" or not drivable(h) or any(u is not None for u in net.use)
+                or len(set(net.activations)) != 1 or net.activations[0] not in ADJOINT_ACTIVATIONS
+                or not all(mem.hybrid.spec.widths for mem in self.members)):
+            return None
+        xs = plan.x_half
+        bound = h.compiled.bind(p) if shared is None else h.compiled.bind(shared[0], shared[1])
+        d = bound.c.expand(xs.shape[0], *bound.c.shape)
+        if h.compiled.input_names:
+            d = d + torch.einsum("sij,hsj->hsi", bound.B, xs)
+        rows = p.shape[0]
+        r = rows // m
+        wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
+                                           self.std, len(h.state_idx), len(h.input_idx))  # (M, b, ·), (M, b)
+        pre = b1[None, :, None, :].expand(xs.shape[0], m, r, b1.shape[-1])  # (H, M, r, b)
+        if h.input_idx:
+            pre = pre + xs[..., h.input_idx].reshape(xs.shape[0], m, r, -1) @ wx.transpose(1, 2)
+        if h.param_idx:
+            pre = pre + (p[:, h.param_idx].reshape(m, r, -1) @ wp.transpose(1, 2))[None]
+        coef = self._coef(p)
+        gain = net.scale if coef is None else net.scale * coef.reciprocal().view(m, r, -1)
+        reads, index = columns(h)
+        return rk4_adjoint(u0, bound.A, d, pre, wu.transpose(1, 2), list(zip(net.weights[1:], net.biases[1:])), gain,
+                           h=plan.dt, steps=plan.steps, activation=net.activations[0], box=self.box, reads=reads,
+                           index=index)
+
     # -- one epoch -----------------------------------------------------------------------------------------
     def losses(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Each model's training loss and fit loss ``(M,)``, as train() computes them for one."""
@@ -237,8 +269,11 @@ class Stack(StackEvaluation):
         u0 = torch.where(self.pinned[None], self.fixed_first[None],
                          torch.clamp(self.seg0 + self.free * self.state_scale, self.lo, self.hi))
         u0 = u0.reshape(m * s, n)
-        fast = self._drive(self.net, m, p, plan.x_half, shared)  # the same function, fewer operations
-        if fast is not None:
+        adjoint = self._adjoint(self.net, m, p, u0, plan, shared)
+        fast = None if adjoint is not None else self._drive(self.net, m, p, plan.x_half, shared)  # the same function, fewer operations
+        if adjoint is not None:
+            traj = adjoint
+        elif fast is not None:
             traj = rk4_segments(fast[0], u0, plan, self.box, fast[1])  # (K+1, M·S, n)
         else:
             traj = rk4_segments(self._rhs(self.net, m, p), u0, plan, self.box)

@@ -190,6 +190,20 @@ class Stack(StackEvaluation):
 
         return f
 
+    def _first_layer(self, net: StackedNet, m: int, p: torch.Tensor, xs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first layer split as :func:`split_first_layer`: its state weights ``(M, b, n_in_states)``
+        and its input, parameter and bias part at every half step ``(H, M, r, b)``."""
+        h = self.template
+        r = p.shape[0] // m
+        wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
+                                           self.std, len(h.state_idx), len(h.input_idx))  # (M, b, ·), (M, b)
+        pre = b1[None, :, None, :].expand(xs.shape[0], m, r, b1.shape[-1])  # (H, M, r, b)
+        if h.input_idx:
+            pre = pre + xs[..., h.input_idx].reshape(xs.shape[0], m, r, -1) @ wx.transpose(1, 2)
+        if h.param_idx:
+            pre = pre + (p[:, h.param_idx].reshape(m, r, -1) @ wp.transpose(1, 2))[None]
+        return wu, pre
+
     def _drive(self, net: StackedNet, m: int, p: torch.Tensor, xs: torch.Tensor,
                shared: tuple[torch.Tensor, torch.Tensor] | None = None
                ) -> tuple[Callable[[torch.Tensor, Any], torch.Tensor], Drives] | None:
@@ -203,13 +217,7 @@ class Stack(StackEvaluation):
         linear_plus, physics = physics_drive(h, p, xs) if shared is None else physics_drive(h, shared[0], xs, shared[1])
         rows = p.shape[0]
         r = rows // m
-        wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
-                                           self.std, len(h.state_idx), len(h.input_idx))  # (M, b, ·), (M, b)
-        pre = b1[None, :, None, :].expand(xs.shape[0], m, r, b1.shape[-1])  # (H, M, r, b)
-        if h.input_idx:
-            pre = pre + xs[..., h.input_idx].reshape(xs.shape[0], m, r, -1) @ wx.transpose(1, 2)
-        if h.param_idx:
-            pre = pre + (p[:, h.param_idx].reshape(m, r, -1) @ wp.transpose(1, 2))[None]
+        wu, pre = self._first_layer(net, m, p, xs)
         wu_t = wu.transpose(1, 2)  # (M, n_in_states, b)
         coef = self._coef(p)
         inv = None if coef is None else coef.reciprocal()
@@ -240,13 +248,7 @@ class Stack(StackEvaluation):
             d = d + torch.einsum("sij,hsj->hsi", bound.B, xs)
         rows = p.shape[0]
         r = rows // m
-        wu, wx, wp, b1 = split_first_layer(net.weights[0].transpose(1, 2), net.biases[0][:, 0, :], self.mean,
-                                           self.std, len(h.state_idx), len(h.input_idx))  # (M, b, ·), (M, b)
-        pre = b1[None, :, None, :].expand(xs.shape[0], m, r, b1.shape[-1])  # (H, M, r, b)
-        if h.input_idx:
-            pre = pre + xs[..., h.input_idx].reshape(xs.shape[0], m, r, -1) @ wx.transpose(1, 2)
-        if h.param_idx:
-            pre = pre + (p[:, h.param_idx].reshape(m, r, -1) @ wp.transpose(1, 2))[None]
+        wu, pre = self._first_layer(net, m, p, xs)
         coef = self._coef(p)
         gain = net.scale if coef is None else net.scale * coef.reciprocal().view(m, r, -1)
         reads, index = columns(h)

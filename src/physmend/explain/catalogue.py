@@ -232,11 +232,26 @@ def _entry(raw: Any, k: int, path: Path) -> Mechanism:
 def load_catalogue(path: str | Path | None = None) -> list[Mechanism]:
     """Read and validate a mechanism catalogue (default: the one shipped with physmend).
 
+    A file is read and validated once while it is unchanged (same size and modification time): the
+    symbolic stage classifies every candidate formula against it (a new list each call; the entries
+    are frozen).
+
     Raises:
         CatalogueError: the file is missing or not YAML, or an entry breaks a rule (the message
             names the file, the entry's position and id, the rule and the value found).
     """
     path = Path(path) if path is not None else DEFAULT_CATALOGUE
+    try:
+        stat = path.stat()
+    except OSError as exc:
+        raise CatalogueError(f"{path}: cannot read the mechanism catalogue ({exc.strerror or exc})") from exc
+    return list(_read_catalogue(str(path), stat.st_mtime_ns, stat.st_size))
+
+
+@lru_cache(maxsize=4)
+def _read_catalogue(name: str, mtime_ns: int, size: int) -> tuple[Mechanism, ...]:
+    """The entries of the catalogue file ``name`` (its ``mtime_ns`` and ``size`` key the cache)."""
+    path = Path(name)
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except OSError as exc:
@@ -251,5 +266,19 @@ def load_catalogue(path: str | Path | None = None) -> list[Mechanism]:
         if m.id in seen:
             raise CatalogueError(f"{path}: mechanism ids must be unique, but entries {seen[m.id]} and {k} are both {m.id!r}")
         seen[m.id] = k
-    return entries
+    return tuple(entries)
+
+
+def shape_function(m: Mechanism) -> Any:
+    """``m``'s shape as a numpy function of its placeholders' samples (in :attr:`Mechanism.placeholders`
+    order) and, for a template with a second constant, ``k`` last; made once per form."""
+    return _shape_function(m.shape, m.placeholders, bool(m.k))
+
+
+@lru_cache(maxsize=256)
+def _shape_function(shape: sympy.Expr, placeholders: tuple[str, ...], second: bool) -> Any:
+    dummies = [sympy.Symbol(f"_p{i}") for i in range(len(placeholders))]
+    extra = [sympy.Symbol(SECOND)] if second else []
+    return sympy.lambdify(dummies + extra, shape.xreplace({sympy.Symbol(p): d for p, d in zip(placeholders, dummies)}),
+                          modules="numpy")
 

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import sympy
 
-from physmend.explain.catalogue import COEFFICIENT, SECOND, Mechanism, MechanismError, load_catalogue
+from physmend.explain.catalogue import COEFFICIENT, SECOND, Mechanism, MechanismError, load_catalogue, shape_function
 from physmend.modeling.evaluate import abs_bars, evaluate, mse_r2
 
 
@@ -205,11 +205,7 @@ def classify(
 
     found: list[tuple[Mechanism, dict[str, str], float, float, float | None]] = []
     for m in catalogue:
-        dummies = [sympy.Symbol(f"_p{i}") for i in range(len(m.placeholders))]
-        extra = [sympy.Symbol(SECOND)] if m.k else []
-        f = sympy.lambdify(
-            dummies + extra, m.shape.xreplace({sympy.Symbol(p): d for p, d in zip(m.placeholders, dummies)}), modules="numpy"
-        )
+        f = shape_function(m)
         for combo in itertools.permutations(names, len(m.placeholders)):
             assignment = dict(zip(m.placeholders, combo))
             if not m.admissible(assignment, units):

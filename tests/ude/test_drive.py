@@ -123,3 +123,74 @@ def test_the_stack_drive_is_the_stack_right_hand_side(user_project: Path, monkey
     assert len(fast_grads) == len(slow_grads) == len(stack.params) - 1
     for a, b in zip(fast_grads, slow_grads):
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-12)
+
+
+RODAS = {"method": "rodas4", "rtol": 1e-4, "atol": 1e-4, "options": {}}
+
+
+@pytest.mark.parametrize("extra", VARIANTS, ids=["default", "state-units", "subsets", "no-inputs-deep"])
+def test_the_drive_table_is_the_right_hand_side(user_project: Path, monkeypatch: pytest.MonkeyPatch, extra: list[str]) -> None:
+    """The whole-trajectory drive (its values at the input knots, interpolated) gives the plain
+    right-hand side's derivative at any time, between knots too, for one state and for the copies of a
+    finite-difference Jacobian; and a checkpoint's metrics are the plain solve's to rounding."""
+    import physmend.ude.metrics as metrics
+    from physmend.ude.drive import drive_table
+
+    monkeypatch.chdir(user_project)
+    _, problem, ref, hybrid, _, _ = _setup(user_project, extra)
+    batch = ref.batch
+    p = hybrid.parameters_for(batch.params)
+    plain = hybrid.rhs(p)
+    f, table = drive_table(hybrid, p, batch.inputs)
+    torch.manual_seed(1)
+    t0, t1 = float(batch.t[0]), float(batch.t[-1])
+    times = [batch.inputs.knots[3].expand(batch.size), t0 + (t1 - t0) * torch.rand(batch.size, dtype=batch.t.dtype)]
+    for t in times:
+        u = ref.states[5] + 0.1 * torch.randn_like(ref.states[5])
+        torch.testing.assert_close(f(u, table.each(t)), plain(u, batch.inputs.each(t)), rtol=1e-10, atol=1e-12)
+        copies = u[None] + 0.01 * torch.randn(4, *u.shape, dtype=u.dtype)
+        torch.testing.assert_close(f(copies, table.each(t)), plain(copies, batch.inputs.each(t)), rtol=1e-10, atol=1e-12)
+        scalar = t[0]
+        torch.testing.assert_close(f(u, table(scalar)), plain(u, batch.inputs(scalar)), rtol=1e-10, atol=1e-12)
+
+    fast = metrics.evaluate_with(hybrid, problem, RODAS)
+    monkeypatch.setattr(metrics, "drivable", lambda h: False)
+    slow = metrics.evaluate_with(hybrid, problem, RODAS)
+    for key in ("val.rmse", "train.rmse"):
+        assert fast[0][key] == pytest.approx(slow[0][key], rel=1e-7)
+    torch.testing.assert_close(fast[1], slow[1], rtol=0, atol=1e-7 * float(slow[1].abs().max()), equal_nan=True)
+
+
+def test_the_stack_drive_table_gives_the_stack_checkpoints(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stack's checkpoint evaluation through the drive table gives the plain stacked right-hand
+    side's metrics to rounding, for every model (two activations, one shape)."""
+    from physmend.settings import training_settings
+    from physmend.ude.stack.members import prepare
+    from physmend.ude.stack.solve import Stack
+
+    monkeypatch.chdir(user_project)
+    trials = [["seed=1", "ude.width=8", "ude.depth=2", "ude.activation=tanh"],
+              ["seed=2", "ude.width=8", "ude.depth=2", "ude.activation=softplus"],
+              ["seed=3", "ude.width=8", "ude.depth=2", "ude.activation=tanh"]]
+    cfgs = [compose([*BASE, *t], user_config_dir=user_project / "my_conf") for t in trials]
+    problem = load_problem(cfgs[0])
+    ref = reference(problem, cfgs[0])
+    cfgs = [resolve_times(c, problem, ref) for c in cfgs]
+    plan = plan_shooting(problem, ref.batch, cfgs[0])
+    stack = Stack([prepare(training_settings(c), problem, ref, plan, i, warm=False) for i, c in enumerate(cfgs)],
+                  problem, ref, plan, cfgs[0])
+    with torch.no_grad():
+        for w in stack.net.weights:
+            w.add_(0.3 * torch.randn_like(w))
+    positions = list(range(stack.size))
+    net = stack.net.select(torch.tensor(positions))
+    p = stack._parameters_for(ref.batch.params, None if stack.est_raw is None else stack.est_raw.detach(), stack.size)
+    assert stack._drive_table(net, stack.size, p, ref.batch.take(torch.arange(ref.batch.size).repeat(stack.size)).inputs) is not None
+    fast = stack.evaluate(positions, RODAS)
+    monkeypatch.setattr(Stack, "_drive_table", lambda self, *a: None)
+    slow = stack.evaluate(positions, RODAS)
+    for a, b in zip(fast, slow):
+        assert not isinstance(a, BaseException) and not isinstance(b, BaseException)
+        for key in ("val.rmse", "train.rmse"):
+            assert a[0][key] == pytest.approx(b[0][key], rel=1e-7)
+        torch.testing.assert_close(a[1], b[1], rtol=0, atol=1e-7 * float(b[1].abs().nan_to_num().max()), equal_nan=True)

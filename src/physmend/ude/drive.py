@@ -10,6 +10,10 @@ network. The function is :meth:`HybridModel.rhs`'s, to rounding; small ODEs are 
 per-operation overhead (the cargo box's training solve with its backward pass: 81 k → 56 k
 operations, 0.143 → 0.097 s).
 
+A whole-trajectory solve (checkpoints, reports) has no grid, but its inputs are piecewise linear on
+their knots, and both drives are affine in the inputs: :func:`drive_table` gives their values at the
+knots, which the solver interpolates as it interpolated the inputs.
+
 Shapes: ``p (S, n_params)`` per segment, ``xs (H, S, m)`` inputs at the ``H = 2K+1`` half steps,
 states ``u (S, n)``; drives ``physics (H, S, n)``, ``first (H, S, h₁)``.
 """
@@ -21,6 +25,7 @@ import torch
 from torch import nn
 
 from physmend.modeling.compile import BoundRhs
+from physmend.simulate.inputs import PiecewiseLinear
 from physmend.ude.hybrid import HybridModel
 
 
@@ -84,16 +89,11 @@ def with_physics(u: torch.Tensor, d: torch.Tensor, linear_plus: Callable[[torch.
     return du + corr if index is None else du.index_add(-1, index, corr)
 
 
-def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: torch.Tensor | None = None
-                 ) -> tuple[Callable[[torch.Tensor, tuple[torch.Tensor, torch.Tensor]], torch.Tensor], Drives]:
-    """``f(u, drives[k]) -> du/dt`` and the drives of a solve over the half-step inputs ``xs``.
-
-    ``rows (S,)``: segment ``s`` has the parameters ``p[rows[s]]`` (``p`` per experiment; the
-    physics then shares one matrix per experiment, :class:`BoundRhs`). Call only where
-    :func:`drivable` holds. Gradients reach the network, ``p`` and the estimates."""
-    linear_plus, physics = physics_drive(hybrid, p, xs, rows)
-    if rows is not None:
-        p = p[rows]
+def _network_parts(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor) -> tuple[
+        torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, torch.Tensor] | nn.Module], torch.Tensor]:
+    """The network of ``hybrid`` split for drives over the inputs ``xs (H, S, m)`` (``p (S, n_params)``):
+    the first layer's input and parameter part with its bias ``(H, S, h1)``, its state weights
+    transposed ``(n_read, h1)``, the later layers (``(bias, weightᵀ)`` or an activation) and the output gain."""
     layers = list(hybrid.net)
     first = layers[0]
     assert isinstance(first, nn.Linear)
@@ -104,12 +104,25 @@ def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: t
         pre = pre + xs[..., hybrid.input_idx] @ wx.T
     if hybrid.param_idx:
         pre = pre + (p[:, hybrid.param_idx] @ wp.T)[None]
-    wu_t = wu.T
     rest: list[tuple[torch.Tensor, torch.Tensor] | nn.Module] = [
         (m.bias, m.weight.T) if isinstance(m, nn.Linear) else m for m in layers[1:]]
     gain = hybrid.out_scale * hybrid.out_mask
     if hybrid.coefficients is not None:
         gain = gain / hybrid.equation_coefficients(p)  # (S, k)
+    return pre, wu.T, rest, gain
+
+
+def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: torch.Tensor | None = None
+                 ) -> tuple[Callable[[torch.Tensor, tuple[torch.Tensor, torch.Tensor]], torch.Tensor], Drives]:
+    """``f(u, drives[k]) -> du/dt`` and the drives of a solve over the half-step inputs ``xs``.
+
+    ``rows (S,)``: segment ``s`` has the parameters ``p[rows[s]]`` (``p`` per experiment; the
+    physics then shares one matrix per experiment, :class:`BoundRhs`). Call only where
+    :func:`drivable` holds. Gradients reach the network, ``p`` and the estimates."""
+    linear_plus, physics = physics_drive(hybrid, p, xs, rows)
+    if rows is not None:
+        p = p[rows]
+    pre, wu_t, rest, gain = _network_parts(hybrid, p, xs)
     state_idx, index = columns(hybrid)
 
     def f(u: torch.Tensor, drive: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -120,3 +133,40 @@ def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: t
         return with_physics(u, d, linear_plus, h * gain, index)
 
     return f, Drives(physics, pre)
+
+
+def drive_table(hybrid: HybridModel, p: torch.Tensor, inputs: PiecewiseLinear
+                ) -> tuple[Callable[[torch.Tensor, torch.Tensor], torch.Tensor], PiecewiseLinear]:
+    """The hybrid's right-hand side for a whole-trajectory solve, ``f(u, d) -> du/dt``, and the drive
+    ``d(t)`` it takes in place of the inputs: a :class:`PiecewiseLinear` on the inputs' own knots.
+
+    The physics' drive ``B(p)·x + c(p)`` and the network's first layer on inputs and parameters (its
+    normalisation folded in, with its bias) are affine in ``x``, and ``x`` is linear between knots:
+    so is the drive, and its values at the knots ``(B, K, n + h1)`` interpolate it exactly. A solver's
+    evaluation then looks up the drive (as it looked up the inputs) and costs one product for the
+    physics and one per layer — :meth:`HybridModel.rhs`'s function to rounding, without the features,
+    the normalisation or the physics' input product at every evaluation. ``p (B, n_params)`` (already
+    estimated); ``u (..., B, n)`` with any leading dimensions (finite-difference Jacobians); the
+    drive's kinks are the inputs' (a solver's stops should come from the inputs). Only where
+    :func:`drivable` holds; no gradients are meant to pass (whole-trajectory evaluations)."""
+    xs = inputs.values.transpose(0, 1)  # (K, B, m): the inputs at their knots
+    linear_plus, physics = physics_drive(hybrid, p, xs)
+    pre, wu_t, rest, gain = _network_parts(hybrid, p, xs)
+    n = physics.shape[-1]
+    table = PiecewiseLinear(inputs.knots, torch.cat([physics, pre], -1).transpose(0, 1).contiguous())
+    state_idx, index = columns(hybrid)
+
+    def f(u: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        physics_d, h = d[..., :n], d[..., n:]
+        read = u if state_idx is None else u[..., state_idx]
+        if read.dim() == 2:
+            h = torch.addmm(h, read, wu_t)
+            for layer in rest:
+                h = torch.addmm(layer[0], h, layer[1]) if isinstance(layer, tuple) else layer(h)
+        else:  # the copies of a finite-difference Jacobian: (..., B, n)
+            h = torch.matmul(read, wu_t) + h
+            for layer in rest:
+                h = torch.matmul(h, layer[1]) + layer[0] if isinstance(layer, tuple) else layer(h)
+        return with_physics(u, physics_d, linear_plus, h * gain, index)
+
+    return f, table

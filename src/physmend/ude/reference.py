@@ -84,6 +84,15 @@ def simulate_with(rhs: Callable[[torch.Tensor, torch.Tensor], torch.Tensor], bat
     return odeint(f, u0, batch.t, method=sim["method"], rtol=sim["rtol"], atol=sim["atol"], options=options, names=batch.ids)
 
 
+def with_stops(sim: dict[str, Any], batch: Batch) -> dict[str, Any]:
+    """``sim`` with the clocks :func:`simulate_with` would give ``batch`` fixed in its options: for a
+    solve of ``batch``'s rows whose inputs are replaced by a function of them with the same knots (a
+    drive, :func:`physmend.ude.drive.drive_table`), so that its steps end where they end on ``batch``."""
+    if sim["method"] not in CLOCK_METHODS or "clocks" in sim["options"]:
+        return sim
+    return {**sim, "options": {**sim["options"], "clocks": own_stops(batch)}}
+
+
 def reference(problem: Problem, cfg: Any, *, bounded: bool = False) -> Reference:
     """The model as written simulated on every experiment of ``problem`` (no gradients).
 

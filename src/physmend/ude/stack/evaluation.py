@@ -6,6 +6,7 @@ batched adaptive solve (each model alone where the batched solve fails). A part 
 from __future__ import annotations
 
 from typing import Any
+import dataclasses
 import math
 
 import torch
@@ -15,7 +16,7 @@ from physmend.simulate import Batch
 from physmend.simulate.initial import estimate_initial
 from physmend.ude.metrics import LEAVE_MARGIN, evaluate_with, guarded, metrics_of
 from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.reference import simulate_with
+from physmend.ude.reference import simulate_with, with_stops
 from physmend.ude.stack.net import StackedNet, write_back_row
 
 
@@ -74,8 +75,13 @@ class StackEvaluation:
         def outputs(rows: Batch, u0: torch.Tensor) -> torch.Tensor:
             """Rows model-major, the same experiments for every model (as every caller here builds them)."""
             p = self._parameters_for(rows.params[: rows.size // m], est, m)  # (M·R, n_params)
-            rhs = guarded(self._rhs(net, m, p), limits, rows.ids, self.problem.compiled.state_names)
-            states = simulate_with(rhs, rows, u0, sim)
+            names = self.problem.compiled.state_names
+            driven = self._drive_table(net, m, p, rows.inputs)
+            if driven is None:
+                states = simulate_with(guarded(self._rhs(net, m, p), limits, rows.ids, names), rows, u0, sim)
+            else:  # the same function with the input-dependent work done once per knot
+                states = simulate_with(guarded(driven[0], limits, rows.ids, names),
+                                       dataclasses.replace(rows, inputs=driven[1]), u0, with_stops(sim, rows))
             return self.problem.compiled.outputs(states, rows.inputs.at(rows.t), p[None])
 
         # declared-unknown initial values: each model's own estimates (a failed candidate solve is

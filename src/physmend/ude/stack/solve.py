@@ -15,7 +15,7 @@ import torch
 from physmend.problem import Problem
 from physmend.settings import TrainingSettings
 from physmend.ude.checkpoints import Checkpoints
-from physmend.simulate import make_batch
+from physmend.simulate import PiecewiseLinear, make_batch
 from physmend.ude.adjoint import ACTIVATIONS as ADJOINT_ACTIVATIONS, rk4_adjoint
 from physmend.ude.drive import Drives, columns, drivable, physics_drive, split_first_layer, with_physics
 from physmend.ude.hybrid import ACTIVATIONS, HybridModel, HybridSpec
@@ -230,6 +230,44 @@ class Stack(StackEvaluation):
             return with_physics(u, d, linear_plus, corr if inv is None else corr * inv, index)
 
         return f, Drives(physics, pre.reshape(xs.shape[0], m, r, -1))
+
+    def _drive_table(self, net: StackedNet, m: int, p: torch.Tensor, inputs: PiecewiseLinear
+                     ) -> tuple[Callable[[torch.Tensor, torch.Tensor], torch.Tensor], PiecewiseLinear] | None:
+        """:meth:`_rhs` for a whole-trajectory solve as ``f(u, d)`` and its drive ``d(t)`` on the knots
+        of ``inputs`` (``m·R`` rows, model-major), as :func:`~physmend.ude.drive.drive_table` for one
+        model; None where the drives do not apply (:meth:`_drive`). ``u (..., m·R, n)`` may have
+        leading dimensions (finite-difference Jacobians)."""
+        h = self.template
+        if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
+            return None
+        xs = inputs.values.transpose(0, 1)  # (K, m·R, n_inputs): the inputs at their knots
+        linear_plus, physics = physics_drive(h, p, xs)
+        rows = p.shape[0]
+        r = rows // m
+        wu, pre = self._first_layer(net, m, p, xs)
+        wu_t = wu.transpose(1, 2)  # (M, n_in_states, b)
+        coef = self._coef(p)
+        inv = None if coef is None else coef.reciprocal()
+        state_idx, index = columns(h)
+        n = physics.shape[-1]
+        table = PiecewiseLinear(inputs.knots, torch.cat([physics, pre.reshape(xs.shape[0], rows, -1)], -1)
+                                .transpose(0, 1).contiguous())
+
+        def f(u: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+            d_phys, first = d[..., :n], d[..., n:]
+            us = u if state_idx is None else u[..., state_idx]
+            if us.dim() == 2:
+                corr = net(None, torch.baddbmm(first.reshape(m, r, -1), us.reshape(m, r, -1), wu_t)).reshape(rows, -1)
+            else:  # copies (..., m·R, n): each model's rows of every copy through its own network
+                lead = us.shape[:-2]
+                copies = us.numel() // (rows * us.shape[-1])
+                uu = us.reshape(copies, m, r, -1).movedim(0, 1).reshape(m, copies * r, -1)
+                ff = first.expand(*lead, rows, first.shape[-1]).reshape(copies, m, r, -1).movedim(0, 1)
+                out = net(None, torch.baddbmm(ff.reshape(m, copies * r, -1), uu, wu_t))
+                corr = out.reshape(m, copies, r, -1).movedim(0, 1).reshape(*lead, rows, -1)
+            return with_physics(u, d_phys, linear_plus, corr if inv is None else corr * inv, index)
+
+        return f, table
 
     def _adjoint(self, net: StackedNet, m: int, p: torch.Tensor, u0: torch.Tensor, plan: Shooting,
                  shared: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor | None:

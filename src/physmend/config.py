@@ -129,7 +129,7 @@ def compose(
     from physmend.config_check import check_settings
 
     try:
-        check_settings(cfg, choices, config_dir())
+        check_settings(cfg)
     except SettingError as exc:
         raise ConfigError(str(exc)) from None
     if "operators" in cfg:

@@ -1,120 +1,45 @@
 """Settings checked when the configuration is composed, before any run or file is written.
 
-The groups training reads (``train``, ``ude``, ``simulate``) are typed: each key's rule is a field
-of its settings class (:data:`physmend.settings.TYPED`). Every setting of the other shipped groups
-(``sweep``, ``symbolic`` …) keeps the kind of its shipped default: a whole number stays a whole
-number ≥ 0, a number a finite number (> 0 where the default is positive, ≥ 0 where it is zero), a
-switch ``true``/``false``, a word a word (and, for the keys in :data:`CHOICES`, one of the listed
-words); a default ``auto`` accepts ``auto`` or a number > 0. :data:`RANGES` adds the rules the
-default cannot say. A value given as text that reads as a number (``"1e-5"``) is accepted as that
-number. Model, data and search-space groups are the user's own and are checked where they are read.
-Imports ``config`` only lazily (no cycle).
+Every group physmend ships (``train``, ``ude``, ``simulate``, ``sweep``, ``symbolic`` …) and the
+top-level ``seed``, ``threads`` and ``device`` are typed (:data:`physmend.settings.TYPED`): each key
+is checked by the rule of its field, and a number given as text (``"1e-5"``) becomes that number in
+the configuration; a key a group does not know (in a user's own option file of a shipped group, or
+added with ``+group.key=…``) is an error naming the keys it knows. The same rules hold where a stage
+builds a group's settings (:func:`physmend.settings.group_settings`). Model, data and search-space
+groups are the user's own and are checked where they are read.
 """
 
 from __future__ import annotations
 
-import math
-import re
+import dataclasses
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
-import yaml
 from omegaconf import DictConfig, OmegaConf
 
-from physmend.settings import ABOVE_ZERO, TYPED, Rule, SettingError, check, rule_of
-
-#: groups physmend ships and owns the keys of (the user's ``model`` and ``data`` are checked on load)
-CHECKED_GROUPS = ("simulate", "tracking", "diagnose", "ude", "train", "mask", "sensitivity", "symbolic",
-                  "propose", "decide", "export", "discover", "sweep")
-
-#: word settings with a closed set of values (others, like ``simulate.method``, are checked by their
-#: user; those of the typed groups are rules of their settings classes)
-CHOICES: dict[str, tuple[str, ...]] = {
-    "export.format": ("all", "latex", "sympy", "python", "network", "petab"),
-}
-
-#: settings whose default ``auto`` has a list of names, not a number, as its alternative
-AUTO_OR_LIST = ("symbolic.parameters",)
-
-#: ``key: (low, high)``, both inclusive, where the default's kind says too little: counts that must
-#: be at least one, fractions, weights that may be zero
-RANGES: dict[str, tuple[float, float]] = {
-    **{key: (1, math.inf) for key in (
-        "diagnose.n_windows", "diagnose.smooth_samples", "mask.max_k", "mask.retrain_epochs", "sensitivity.top_k",
-        "sensitivity.max_rows", "symbolic.window_samples", "sweep.n_trials", "sweep.group", "sweep.workers",
-        "sweep.heartbeat_interval", "sweep.stale_after", "discover.n_trials", "discover.group", "threads")},
-    "diagnose.window_fraction": (ABOVE_ZERO, 1.0),
-    "sensitivity.group_r": (ABOVE_ZERO, 1.0),
-    "symbolic.canonical_r2": (ABOVE_ZERO, 1.0),
-    "mask.tolerance": (0.0, math.inf),
-    "mask.retrain_fit_gain": (0.0, 0.5),
-}
+from physmend.settings import TYPED, rule_of
 
 
-def rule_from_default(key: str, default: Any) -> Rule:
-    """The rule of an untyped group's setting ``key``, from the kind of its shipped ``default``."""
-    if key in CHOICES:
-        return Rule("word", choices=CHOICES[key])
-    if key in AUTO_OR_LIST:
-        return Rule("names")
-    if isinstance(default, str) and default == "auto":
-        return Rule("auto")
-    if isinstance(default, bool):
-        return Rule("bool")
-    if isinstance(default, (int, float)):
-        kind = "int" if isinstance(default, int) else "float"
-        if key in RANGES:
-            low, high = RANGES[key]
-            return Rule(kind, low=low, high=high)
-        if isinstance(default, int) or default == 0:
-            return Rule(kind, low=0.0) if default >= 0 else Rule(kind, low=-math.inf)
-        return Rule(kind, low=None) if default > 0 else Rule(kind, low=-math.inf)
-    if isinstance(default, str):
-        return Rule("word")
-    return Rule("any")
-
-
-def check_value(key: str, value: Any, default: Any) -> Any:
-    """``value`` of ``key`` checked against the kind of its shipped ``default``; returns it, as a
-    number where text reads as one. Raises :class:`SettingError`."""
-    if value is None or default is None or isinstance(default, (list, dict)) or OmegaConf.is_config(value):
+def check_value(key: str, value: Any, default: Any = None) -> Any:
+    """``value`` of the shipped setting ``key`` (``group.name``, or a top-level name) checked by its
+    field's rule; returns it, as a number where text reads as one. A key no settings class types is
+    returned as it is (``default``, the key's shipped default, is not needed: the rule is the field's).
+    Raises :class:`physmend.settings.SettingError`."""
+    group, _, name = key.rpartition(".")
+    cls = TYPED.get(group)
+    if cls is None or rule_of(cls, name) is None:
         return value
-    return check(key, value, rule_from_default(key, default))
+    return cls.check(name, value, key)
 
 
-def check_settings(cfg: DictConfig, choices: dict[str, str], conf_dir: Path) -> None:
-    """Check (and normalise: numbers given as text) every setting of :data:`CHECKED_GROUPS` in ``cfg``:
-    a typed group's by its settings class, another's against the shipped option file the group was
-    composed from (a user's own option file of a shipped group against the shipped default)."""
-    for group in CHECKED_GROUPS:
-        if group not in cfg or not isinstance(cfg[group], DictConfig):
-            continue
-        if group in TYPED:
-            _walk_typed(cfg[group], TYPED[group], group)
-            continue
-        path = conf_dir / group / f"{choices.get(group, 'default')}.yaml"
-        if not path.is_file():
-            path = conf_dir / group / "default.yaml"
-        if not path.is_file():
-            continue
-        defaults = yaml.safe_load(path.read_text()) or {}
-        _walk(cfg[group], defaults, group)
-    if "seed" in cfg:
-        cfg.seed = check_value("seed", cfg.seed, 0)
-    if "threads" in cfg:
-        cfg.threads = check_value("threads", cfg.threads, 1)
-    if "device" in cfg:
-        check_device(cfg.device)
-
-
-def check_device(value: Any) -> None:
-    """``device`` is ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (whether this machine has that device is
-    checked where the problem is loaded, :func:`physmend.device.resolve_device`)."""
-    text = str(value).strip().lower()
-    if text in ("auto", "cpu") or re.fullmatch(r"cuda(:\d+)?", text):
-        return
-    raise SettingError(f"device must be auto, cpu, cuda or cuda:N (N a device number), but got {value!r}")
+def check_settings(cfg: DictConfig) -> None:
+    """Check (and normalise: numbers given as text) every setting of a shipped group in ``cfg`` by
+    the rules of its settings class, and the top-level ``seed``, ``threads`` and ``device``."""
+    for group, cls in TYPED.items():
+        if not group:
+            _walk_typed(cfg, cls, "")
+        elif group in cfg and isinstance(cfg[group], DictConfig):
+            _walk_typed(cfg[group], cls, group)
 
 
 def _raw(node: DictConfig, key: str) -> Any:
@@ -122,10 +47,10 @@ def _raw(node: DictConfig, key: str) -> Any:
 
 
 def _walk_typed(node: DictConfig, cls: type, prefix: str) -> None:
-    """``node``'s keys checked by the rules of settings class ``cls`` (nested groups by theirs);
-    keys it does not know are left to :meth:`physmend.settings.TrainSettings.build`."""
-    import dataclasses
-
+    """``node``'s keys checked by the rules of settings class ``cls`` (nested groups by theirs), a key
+    it does not know named with the keys it knows (the top level: only ``cls``'s keys are checked)."""
+    if prefix:
+        cls.check_keys(node.keys(), prefix)  # type: ignore[attr-defined]
     for f in dataclasses.fields(cls):
         key = f.name
         if key not in node:
@@ -133,36 +58,16 @@ def _walk_typed(node: DictConfig, cls: type, prefix: str) -> None:
         value = _raw(node, key)
         if isinstance(value, str) and "${" in value:
             continue  # an interpolation: checked where it is used
-        name = f"{prefix}.{key}"
-        sub = f.metadata.get("group")
-        if sub is not None:
-            if isinstance(node[key], DictConfig):
-                _walk_typed(node[key], sub, name)
-            continue
+        name = f"{prefix}.{key}" if prefix else key
         rule = rule_of(cls, key)
-        if rule is None or node[key] is None or OmegaConf.is_config(node[key]):
-            continue
-        checked = check(name, node[key], rule)
-        if isinstance(checked, tuple):
-            continue  # a list: stays a list in the configuration
-        if checked is not node[key]:
-            node[key] = checked
-
-
-def _walk(node: DictConfig, defaults: dict[str, Any], prefix: str) -> None:
-    for key, default in defaults.items():
-        if key not in node:
-            continue
-        name = f"{prefix}.{key}"
-        value = _raw(node, key)
-        if isinstance(value, str) and "${" in value:
-            continue  # an interpolation: checked where it is used
-        if isinstance(default, dict):
+        if rule is not None and rule.kind == "group":
             if isinstance(node[key], DictConfig):
-                _walk(node[key], default, name)
+                _walk_typed(node[key], cls.__pydantic_fields__[key].annotation, name)  # type: ignore[attr-defined]
             continue
-        checked = check_value(name, node[key], default)
-        if checked is not node[key]:
+        given = node[key]
+        is_config = OmegaConf.is_config(given)
+        checked = cls.check(key, OmegaConf.to_container(given, resolve=True) if is_config else given, name)  # type: ignore[attr-defined]
+        if not is_config and not isinstance(checked, tuple) and checked is not given:
             node[key] = checked
 
 

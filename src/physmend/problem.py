@@ -10,6 +10,7 @@ import torch
 
 from physmend.device import CPU, resolve_device
 from physmend.modeling import CompiledModel, SimplifiedModel, compile_model, load_model
+from physmend.settings import SimulateSettings, group_settings
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
@@ -32,12 +33,8 @@ class Problem:
 
 
 def dtype_of(cfg: Any) -> torch.dtype:
-    name = str(cfg.simulate.dtype)
-    if name not in DTYPES:
-        from physmend.config import ConfigError
-
-        raise ConfigError(f"simulate.dtype must be one of {sorted(DTYPES)}, but got {name!r}")
-    return DTYPES[name]
+    """The torch dtype of ``simulate.dtype`` (checked: :class:`physmend.settings.SimulateSettings`)."""
+    return DTYPES[SimulateSettings.build(cfg.simulate).dtype]
 
 
 def load_problem(cfg: Any) -> Problem:
@@ -49,13 +46,14 @@ def load_problem(cfg: Any) -> Problem:
     """
     from physmend.data import load_experiments
 
-    threads = int(cfg.get("threads", 1) or 1)
+    top = group_settings(cfg, "")  # seed, threads, device: checked, their defaults conf/config.yaml's
+    threads = top.threads
     if torch.get_num_threads() != threads:  # small solves: thread hand-off costs more than it saves
         torch.set_num_threads(threads)
     dtype = dtype_of(cfg)
-    device = resolve_device(cfg.get("device", "auto"))
+    device = resolve_device(top.device)
     model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}, cfg.model.get("corrections")).simplify()
-    experiments = load_experiments(cfg.data, model, dtype=str(cfg.simulate.dtype))
+    experiments = load_experiments(cfg.data, model, dtype=SimulateSettings.build(cfg.simulate).dtype)
     from physmend.data.config import time_unit_of
     from physmend.data.sanity import check_sampling
 

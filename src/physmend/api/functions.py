@@ -31,6 +31,7 @@ from physmend.api.results import (
     SweepResult,
     SymbolicResult,
 )
+from physmend.settings import group_settings
 
 Source = str | StageResult | None
 
@@ -101,7 +102,7 @@ def run_composed(command: str, cfg: Any, source_id: str | None, *, call: Inputs,
     kind, target, composed = STAGES[command]
     module_name, func = target.split(":")
     stage = getattr(importlib.import_module(module_name), func)
-    out_dir = Path(str(cfg.export.output_dir)).expanduser() if command == "export" else None
+    out_dir = Path(group_settings(cfg, "export").output_dir).expanduser() if command == "export" else None
     before = set(out_dir.iterdir()) if out_dir is not None and out_dir.is_dir() else set()
     with _captured(quiet) as printed:
         if composed:  # sweep and discover compose each trial's config from the overrides, as the CLI does

@@ -29,6 +29,7 @@ import numpy as np
 
 from physmend.data.errors import DataError
 from physmend.data.telemetry import Channel
+from physmend.settings import SimulateSettings
 
 #: physmend's solvers stop after this many steps unless ``simulate.options.max_steps`` says otherwise
 STEP_BUDGET = 100_000
@@ -96,11 +97,11 @@ def check_sampling(experiments: Sequence[Any], simulate_cfg: Any, *, time_unit: 
     ``experiments``: loaded :class:`~physmend.data.Experiment` objects; ``simulate_cfg``: the
     ``simulate`` group (``method``, ``options.max_steps``); ``fastest()``: the model's fastest
     time constant in ``time_unit`` (called only to word the error)."""
-    method = str(simulate_cfg.get("method", "rodas4"))
+    simulate = SimulateSettings.build(simulate_cfg)  # checked; missing keys: conf/simulate/default.yaml
+    method = simulate.method
     if method not in BUDGETED_METHODS:
         return
-    options = simulate_cfg.get("options") or {}
-    budget = int(options.get("max_steps", STEP_BUDGET))
+    budget = int(dict(simulate.options or {}).get("max_steps", STEP_BUDGET))
     for e in experiments:
         stops = solver_stops(np.asarray(e.obs_time), [np.asarray(c.time) for c in e.inputs.values()], method)
         if stops <= budget:

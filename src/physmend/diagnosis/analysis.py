@@ -12,6 +12,7 @@ import numpy as np
 
 from physmend.explain import residuals as res
 from physmend.problem import Problem
+from physmend.settings import DiagnoseSettings
 from physmend.simulate import Trajectories
 
 
@@ -23,6 +24,7 @@ def analyse(problem: Problem, traj: Trajectories, t: np.ndarray, cfg: Any) -> di
     window's length as a share of the record), ``n_windows``, ``smooth_samples`` (the drift rate's
     smoothing) and ``n_correlates``. Returns ``fits`` (one dict per experiment and output),
     ``correlates`` (per output: ``residual`` and ``drift_rate`` correlates) and ``fit_experiments``."""
+    dc = DiagnoseSettings.build(cfg.diagnose)
     model = problem.model
     outs = model.output_names
     sim = traj.outputs.detach().cpu().numpy()
@@ -38,8 +40,8 @@ def analyse(problem: Problem, traj: Trajectories, t: np.ndarray, cfg: Any) -> di
             stats = res.error_stats(exp.obs_time, y, s)
             r = s - y
             windows = res.worst_windows(
-                exp.obs_time, r, length=max(span * float(cfg.diagnose.window_fraction), 2 * interval(exp.obs_time)),
-                count=int(cfg.diagnose.n_windows),
+                exp.obs_time, r, length=max(span * dc.window_fraction, 2 * interval(exp.obs_time)),
+                count=dc.n_windows,
             )
             per.append(
                 {
@@ -66,7 +68,7 @@ def analyse(problem: Problem, traj: Trajectories, t: np.ndarray, cfg: Any) -> di
             rows = np.searchsorted(t, exp.obs_time)
             r = sim[rows, b, j] - exp.obs[:, j]
             sig_r.append(r)
-            sig_rate.append(res.residual_rate(exp.obs_time, r, int(cfg.diagnose.smooth_samples)))
+            sig_rate.append(res.residual_rate(exp.obs_time, r, dc.smooth_samples))
             for i, name in enumerate(model.state_names):
                 cands.setdefault(name, ("state", []))[1].append(states[rows, b, i])
             for i, name in enumerate(model.observed):
@@ -75,7 +77,7 @@ def analyse(problem: Problem, traj: Trajectories, t: np.ndarray, cfg: Any) -> di
             for i, name in enumerate(model.input_names):
                 cands.setdefault(name, ("input", []))[1].append(inputs[rows, b, i])
         pooled = {k: (kind, np.concatenate(v)) for k, (kind, v) in cands.items()}
-        n = int(cfg.diagnose.n_correlates)
+        n = dc.n_correlates
         corr[out] = {
             "residual": [asdict(c) for c in res.correlates(np.concatenate(sig_r), pooled, n)] if sig_r else [],
             "drift_rate": [asdict(c) for c in res.correlates(np.concatenate(sig_rate), pooled, n)] if sig_rate else [],

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from physmend.problem import Problem
+from physmend.settings import SimulateSettings
 from physmend.simulate import Batch, SimulationError, Trajectories, simulate_batch
 from physmend.simulate.divergence import Divergence
 
@@ -26,8 +27,7 @@ def simulate_as_written(problem: Problem, batch: Batch, cfg: Any) -> tuple[Traje
     or where the held solve reaches no box (the failure is not a divergence)."""
     from physmend.ude.reference import find_divergence, output_boxes, state_boxes
 
-    opts = {"method": str(cfg.simulate.method), "rtol": float(cfg.simulate.rtol), "atol": float(cfg.simulate.atol),
-            "options": dict(cfg.simulate.options or {})}
+    opts = SimulateSettings.build(cfg.simulate).solver()
     with torch.no_grad():
         try:
             traj = simulate_batch(problem.compiled, batch, **opts)

@@ -9,6 +9,7 @@ import numpy as np
 
 from physmend.explain.clock import clock
 from physmend.problem import Problem
+from physmend.settings import SimulateSettings
 from physmend.simulate.divergence import RANGE_MARGIN, Divergence
 
 
@@ -24,6 +25,7 @@ def _fmt(x: float, unit: str = "") -> str:
 def summarise(problem: Problem, analysis: dict[str, Any], cfg: Any) -> str:
     """The Markdown summary printed at the end and logged as ``summary.md`` (``analysis``: what
     :func:`physmend.diagnosis.analysis.analyse` found, with the ``divergence`` findings if any)."""
+    simulate = SimulateSettings.build(cfg.simulate)
     roles: dict[str, list[str]] = {}
     for e in problem.experiments:
         roles.setdefault(e.role, []).append(e.id)
@@ -31,7 +33,7 @@ def summarise(problem: Problem, analysis: dict[str, Any], cfg: Any) -> str:
         f"# physmend diagnose — model `{problem.model.name}`, data `{cfg.data.name}`",
         "",
         f"{problem.model.summary()}.",
-        f"Simulated as written ({cfg.simulate.method}, rtol {cfg.simulate.rtol}) against "
+        f"Simulated as written ({simulate.method}, rtol {simulate.rtol}) against "
         + ", ".join(f"{role}: {', '.join(ids)}" for role, ids in roles.items())
         + ".",
         "",

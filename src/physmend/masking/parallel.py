@@ -18,6 +18,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from physmend.settings import TrainSettings
+
 #: (configuration, problem, trainer, equation sets) of the retrainings a forked child runs
 _JOB: tuple[Any, Any, Callable[..., Any], list[list[str]]] | None = None
 
@@ -37,7 +39,7 @@ def retrain(work: Any, problem: Any, names: Sequence[str], train: Callable[..., 
 
     cfg = OmegaConf.create(OmegaConf.to_container(work))
     cfg.ude.corrected = [n for n in problem.model.state_names if n in names]
-    bar = tqdm(total=int(cfg.train.epochs), desc=f"mask: retraining {', '.join(cfg.ude.corrected)}", unit="epoch",
+    bar = tqdm(total=TrainSettings.build(cfg.train).epochs, desc=f"mask: retraining {', '.join(cfg.ude.corrected)}", unit="epoch",
                dynamic_ncols=True, position=position)
 
     def report(epoch: int, row: dict[str, float]) -> None:

@@ -9,6 +9,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from physmend.settings import MaskSettings, TrainSettings
+
 
 def stuck_at_warm_start(result: Any) -> bool:
     """Whether a retraining's best checkpoint is its warm start (epoch 0): its training never
@@ -28,10 +30,10 @@ def longer_settings(work: Any, mc: Any) -> list[str]:
     before it fits everything better; patience that counted validation alone stopped it there, and
     the cosine schedule had no time left. The retrained network is what every later stage reads
     and what must carry over to held-out conditions; a sweep's trials only need to be ranked."""
-    factor, gain = int(mc.get("retrain_epochs", 1)), float(mc.get("retrain_fit_gain", 0.0))  # ranges: config_check
-    polish = float(work.train.get("polish", 0.0)) / factor
-    return [f"train.epochs={int(work.train.epochs) * factor}", f"train.patience_fit_gain={gain!r}",
-            f"train.polish={polish!r}"]
+    mc, tc = MaskSettings.build(mc), TrainSettings.build(work.train)
+    factor, gain = mc.retrain_epochs, mc.retrain_fit_gain
+    return [f"train.epochs={tc.epochs * factor}", f"train.patience_fit_gain={gain!r}",
+            f"train.polish={tc.polish / factor!r}"]
 
 
 def retrain_sets(work: Any, problem: Any, todo: list[list[str]], mc: Any, train: Any) -> tuple[list[Any], list[int]]:
@@ -40,9 +42,10 @@ def retrain_sets(work: Any, problem: Any, todo: list[list[str]], mc: Any, train:
     and the positions trained again."""
     from physmend.masking.parallel import retrain_all, workers
 
-    n = workers(mc.get("workers", "auto"))
+    mc = MaskSettings.build(mc)
+    n = workers(mc.workers)
     done = list(retrain_all(work, problem, todo, train, n))
-    again = [i for i, r in enumerate(done) if stuck_at_warm_start(r)] if int(mc.get("retrain_epochs", 1)) > 1 else []
+    again = [i for i, r in enumerate(done) if stuck_at_warm_start(r)] if mc.retrain_epochs > 1 else []
     if again:
         longer = OmegaConf.merge(work, OmegaConf.from_dotlist(longer_settings(work, mc)))
         for i, r in zip(again, retrain_all(longer, problem, [todo[i] for i in again], train, n)):

@@ -59,6 +59,7 @@ def _proposal(cfg: Any, run_id: str | None) -> tuple[Any, Any]:
 def accept(cfg: Any, source_run_id: str | None = None) -> str:
     """Write the accepted corrections file and tag the proposal; returns the proposal's run ID."""
     from physmend.modeling import read_corrections, write_corrections
+    from physmend.settings import group_settings
     from physmend.tracking import TrackingError, download_artifact
     from physmend.tracking.selection import os_user, utc_now
 
@@ -73,7 +74,7 @@ def accept(cfg: Any, source_run_id: str | None = None) -> str:
         raise TrackingError(f"proposal {run_id!r}: its corrections.yaml names the model {quoted(str(model_name), 60)}, "
                             "but a model name is a name of at most 100 characters, never a path; nothing written")
     _validate(cfg, run_id, model_name, corrections, meta["parameters"])
-    out_dir = Path(str(cfg.decide.output_dir)).expanduser()
+    out_dir = Path(group_settings(cfg, "decide").output_dir).expanduser()
     target = out_dir / f"{_NAME_UNSAFE.sub('_', model_name)}-{run_id[:8]}.yaml"
     if target.resolve().parent != out_dir.resolve():
         raise TrackingError(f"proposal {run_id!r}: the corrections file would leave decide.output_dir; nothing written")
@@ -90,6 +91,7 @@ def accept(cfg: Any, source_run_id: str | None = None) -> str:
 
 def reject(cfg: Any, source_run_id: str | None = None) -> str:
     """Tag the proposal as rejected (with ``decide.reason``); returns its run ID."""
+    from physmend.settings import group_settings
     from physmend.tracking.selection import os_user, utc_now
 
     store, run = _proposal(cfg, source_run_id)
@@ -97,7 +99,8 @@ def reject(cfg: Any, source_run_id: str | None = None) -> str:
     store.client.set_tag(run_id, DECISION_TAG, "rejected")
     store.client.set_tag(run_id, "physmend.decided_by", os_user())
     store.client.set_tag(run_id, "physmend.decided_at", utc_now())
-    if str(cfg.decide.reason):
-        store.client.set_tag(run_id, "physmend.reject_reason", str(cfg.decide.reason))
+    reason = group_settings(cfg, "decide").reason
+    if reason:
+        store.client.set_tag(run_id, "physmend.reject_reason", reason)
     print(f"rejected proposal {run_id}; your model is unchanged")
     return run_id

@@ -18,6 +18,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run the diagnose stage; returns the MLflow run ID. Nothing is written if the inputs are bad."""
     from physmend.diagnosis import diagnose, plot_experiment
     from physmend.problem import load_problem
+    from physmend.settings import group_settings
     from physmend.stages.activity import activity
     from physmend.tracking import open_store, stage_run
 
@@ -31,7 +32,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                 "data": cfg.data.name,
                 "n_states": len(problem.model.states),
                 "n_experiments": len(problem.experiments),
-                "simulate.method": cfg.simulate.method,
+                "simulate.method": group_settings(cfg, "simulate").method,
             }
         )
         description = found.description()
@@ -40,7 +41,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         run_.log_metrics(found.metrics())
         run_.log_json(found.analysis, "diagnosis.json")
         run_.log_text(found.summary, "summary.md")
-        if bool(cfg.diagnose.plots):
+        if group_settings(cfg, "diagnose").plots:
             import matplotlib.pyplot as plt
 
             for b, exp in enumerate(problem.experiments):

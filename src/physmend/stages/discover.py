@@ -32,19 +32,18 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     a key the search space would search is left out of the search, said in one line.
     """
     from physmend.config import ConfigError
+    from physmend.settings import SettingError, group_settings
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
     from physmend.sweep import hydra_value
 
-    shapes = cfg.discover.get("group_shapes", False)
-    if not isinstance(shapes, bool):  # checked before any stage writes a run
-        raise ConfigError(f"discover.group_shapes must be true or false, but got {shapes!r}")
+    try:  # checked before any stage writes a run
+        dc = group_settings(cfg, "discover")
+    except SettingError as exc:
+        raise ConfigError(str(exc)) from None
     given = {_key(o) for o in overrides or ()}
     cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    budget = cfg.discover.get("budget")
-    chosen = {"n_trials": int(cfg.discover.n_trials), "space": str(cfg.discover.space),
-              "group": int(cfg.discover.get("group", 1)), "group_shapes": shapes,
-              "budget": None if budget is None else float(budget),
-              "max_trials": cfg.discover.get("max_trials")}
+    chosen = {"n_trials": dc.n_trials, "space": dc.space, "group": dc.group, "group_shapes": dc.group_shapes,
+              "budget": dc.budget, "max_trials": dc.max_trials}
     if "sweep.n_trials" in given and "sweep.budget" not in given:
         chosen["budget"] = None  # the user's count of trials is the count, not a minimum under discover's budget
     for key in SWEEP_KEYS:

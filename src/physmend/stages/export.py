@@ -57,6 +57,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.modeling.export import FORMATS, module_name
     from physmend.problem import load_problem
     from physmend.proposal.files import corrected_model_texts, formats as named_formats, report, write_new
+    from physmend.settings import group_settings
     from physmend.stages.common import merged
     from physmend.tracking import TrackingError, download_artifact, get_run, open_store
     from physmend.tracking.fingerprint import check_same_model
@@ -69,8 +70,9 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     run_id = run_.info.run_id
     if run_.info.status != "FINISHED":
         raise TrackingError(f"proposal {run_id!r} did not finish (status {run_.info.status})")
-    out_dir = Path(str(cfg.export.output_dir)).expanduser()
-    formats = named_formats(cfg.export.format)
+    ec = group_settings(cfg, "export")
+    out_dir = Path(ec.output_dir).expanduser()
+    formats = named_formats(ec.format)
     if "petab" in formats:
         from physmend.modeling.petab import unavailable_reason
 
@@ -107,7 +109,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
         return network_files(hybrid, units, stem=base, meta=info)
 
     written = corrected_model_texts(problem, corrections, formats, info, _stderr(store, run_), network,
-                                    every=str(cfg.export.format) == "all")
+                                    every=ec.format == "all")
     write_new(written, targets, out_dir)
     print(report(run_id, name, [c.state for c in corrections], list(written), targets, base))
     return run_id

@@ -18,6 +18,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     import matplotlib.pyplot as plt
 
     from physmend.masking import mask_corrections, outcome_figure, report
+    from physmend.settings import group_settings
     from physmend.stages.activity import activity
     from physmend.stages.common import load_source, log_artifacts, log_training, merged, resolve
     from physmend.tracking import TrackingError, open_store, stage_run
@@ -25,7 +26,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     store = open_store(cfg.tracking)
     src_run = resolve(store, source_run_id, stages=("trial",))
     src = load_source(store, src_run, cfg)
-    hybrid, mc = src.hybrid, cfg.mask
+    hybrid, mc = src.hybrid, group_settings(cfg, "mask")
     unknown = [n for n in (str(n) for n in mc.keep or []) if n not in hybrid.spec.corrected]
     if unknown:
         raise TrackingError(f"mask.keep names {unknown}, which run {src_run.info.run_id!r} does not correct "

@@ -30,6 +30,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     from physmend.problem import load_problem
     from physmend.proposal import validate
     from physmend.redact import redact
+    from physmend.settings import group_settings
     from physmend.stages.activity import activity
     from physmend.stages.common import merged, resolve
     from physmend.tracking import download_artifact, open_store, stage_run
@@ -65,7 +66,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
                       "Next: physmend accept <this run> (or reject, or export).")
         run_.log_text(Path(corr_path).read_text(), "corrections.yaml")
         images: dict[str, bytes] = {}  # embedded in report.html, which then shows them wherever it is opened
-        if bool(cfg.propose.plots):
+        if group_settings(cfg, "propose").plots:
             for rel, fig in found.figures():
                 run_.log_figure(fig, rel)
                 png = io.BytesIO()

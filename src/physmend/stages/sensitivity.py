@@ -18,6 +18,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     """Run the sensitivity stage on a mask run (default: the latest); returns the new run ID."""
     import matplotlib.pyplot as plt
 
+    from physmend.settings import group_settings
     from physmend.stages.common import load_source, merged, resolve
     from physmend.symbolic.sensitivity import heatmap, input_sensitivity, report
     from physmend.tracking import TrackingError, open_store, stage_run
@@ -28,18 +29,16 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     work = merged(src.cfg, cfg, "sensitivity")
     hybrid = src.hybrid
     names = hybrid.spec.input_names
-    group_r = cfg.sensitivity.get("group_r")
-    if group_r is not None and (isinstance(group_r, bool) or not isinstance(group_r, (int, float)) or not 0 < group_r <= 1):
-        raise TrackingError(f"sensitivity.group_r must be a correlation in (0, 1] or null, but got {group_r!r}")
-    given = [str(n) for n in cfg.sensitivity.inputs] if cfg.sensitivity.inputs else None
+    sc = group_settings(cfg, "sensitivity")  # group_r in (0, 1] or null, checked
+    given = [str(n) for n in sc.inputs] if sc.inputs else None
     unknown = [n for n in given or [] if n not in names]
     if unknown:
         raise TrackingError(
             f"sensitivity.inputs names {unknown}, which are not inputs of the network of run "
             f"{src_run.info.run_id!r}; its inputs are {names}"
         )
-    found = input_sensitivity(hybrid, src.problem, work, max_rows=int(cfg.sensitivity.max_rows),
-                              top_k=int(cfg.sensitivity.top_k), group_r=group_r, names=given)
+    found = input_sensitivity(hybrid, src.problem, work, max_rows=sc.max_rows, top_k=sc.top_k, group_r=sc.group_r,
+                              names=given)
     chosen, kept = found.chosen, found.kept
     with stage_run(store, work, stage=STAGE, source_run_id=src_run.info.run_id, run_name="sensitivity",
                    tags={"physmend.inputs": ",".join(chosen), "physmend.kept": ",".join(kept)}) as run_:

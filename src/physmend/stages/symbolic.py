@@ -22,6 +22,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     import yaml
 
     from physmend.modeling.corrections import FORMAT
+    from physmend.settings import group_settings
     from physmend.stages.common import load_source, merged, resolve
     from physmend.symbolic.formulas import find_formulas
     from physmend.symbolic.summary import report
@@ -36,7 +37,7 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     src = load_source(store, model_run, cfg)
     hybrid, problem = src.hybrid, src.problem
     work = resolve_times(merged(src.cfg, cfg, "symbolic"), problem)
-    sc = cfg.symbolic
+    sc = group_settings(cfg, "symbolic")
     kept = sens_run.data.tags.get("physmend.kept", "").split(",")
     inputs = [n for n in sens_run.data.tags.get("physmend.inputs", "").split(",") if n]
     params = informative_parameters(problem) if sc.parameters == "auto" else [str(p) for p in (sc.parameters or [])]
@@ -50,13 +51,11 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
     if stray:
         raise TrackingError(f"symbolic.choice names {stray}, but the formulas are for the kept corrections {list(kept)} "
                             "(choose a Pareto index for one of those)")
-    select = str(sc.get("select", "recorded"))
-    if select not in ("recorded", "rule"):
-        raise TrackingError(f"symbolic.select must be 'recorded' or 'rule', but got {select!r}")
+    select = sc.select  # 'recorded' or 'rule', checked
     operators = OmegaConf.to_container(cfg.operators) if "operators" in cfg else None  # checked when composed
     found = find_formulas(hybrid, problem, work, sc, training_trajectories(hybrid, problem, work), kept=kept,
                           inputs=inputs, parameters=params, scale=scale, choices=choices, select=select,
-                          operators=operators, seed=int(cfg.get("seed", 0)))  # type: ignore[arg-type]
+                          operators=operators, seed=group_settings(cfg, "").seed)  # type: ignore[arg-type]
     corrections, metrics = found.corrections, found.metrics
     # the held-out (test) fit is the proposal's report: simulating the test records here too would
     # cost a whole-trajectory solve of each (a long record: minutes) for a figure nothing chooses by
@@ -79,6 +78,6 @@ def run(cfg: Any, source_run_id: str | None = None) -> str:
             + f". Corrected model, validation RMSE {metrics.get('val.rmse', float('nan')):.4g}. Source sensitivity run: "
             f"{sens_run.info.run_id}. Next: physmend propose <this run>.")
         run_id = run_.run_id
-    print(report(found, str(sc.backend), bool(sc.get("verbose", False))))
+    print(report(found, sc.backend, sc.verbose))
     print(f"\nsymbolic run: {run_id}\nnext: physmend propose {run_id}")
     return run_id

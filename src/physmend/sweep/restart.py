@@ -20,6 +20,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from physmend.settings import TrainSettings
+
 #: each restart divides the trial's learning rate by this
 LR_DIVISOR = 3.0
 
@@ -69,18 +71,18 @@ def restart_changes(cfg: DictConfig, restart: int) -> dict[str, Any]:
     smaller steps (restart ``k``: ``lr / 3**k``, segments ``/ 2**k``)."""
     if restart < 1:
         raise ValueError(f"restart must be >= 1, but got {restart}")
-    tc = cfg.train
+    tc = TrainSettings.build(cfg.train)
     changes: dict[str, Any] = {}
     shrink = restart
-    if str(tc.get("warm_start", "none")) != "none" and restart >= 2:
+    if tc.warm_start != "none" and restart >= 2:
         changes["train.warm_start"] = "none"
         shrink = restart - 2
     if shrink == 0:
         return changes
     changes["train.lr"] = float(tc.lr) / LR_DIVISOR ** shrink
-    length = tc.get("segment_length", "auto")
-    if str(length) == "auto":
-        samples = int(tc.get("segment_samples", 60))
+    length = tc.segment_length
+    if length == "auto":
+        samples = tc.segment_samples
         shorter = max(MIN_SEGMENT_SAMPLES, samples // SEGMENT_DIVISOR ** shrink)
         if shorter < samples:
             changes["train.segment_samples"] = shorter

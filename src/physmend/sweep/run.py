@@ -54,6 +54,7 @@ def run_sweep(
     running trial FAIL (its run KILLED) and re-raises ``KeyboardInterrupt``.
     """
     from physmend.problem import load_problem
+    from physmend.settings import group_settings
     from physmend.tracking import get_run, open_store
 
     settings = Settings.from_cfg(cfg.sweep)
@@ -74,7 +75,7 @@ def run_sweep(
     else:
         check_keys(space, cfg)
     problem = load_problem(cfg)
-    storage = open_storage(str(cfg.tracking.optuna_storage))
+    storage = open_storage(group_settings(cfg, "tracking").optuna_storage)
     store = _retry(lambda: open_store(cfg.tracking))
     if source_run_id:
         get_run(store, source_run_id)

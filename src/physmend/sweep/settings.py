@@ -4,12 +4,10 @@ searched keys that shape a stacked solve.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from physmend.config import ConfigError
+from physmend.settings import SettingError, SweepSettings, rule_of
 from physmend.sweep.space import SearchSpace
 
 if TYPE_CHECKING:
@@ -18,43 +16,19 @@ if TYPE_CHECKING:
     from physmend.sweep.budget import Budget
 
 
-SAMPLERS = ("tpe", "random")
+#: the samplers and the pruners ``sweep.sampler`` and ``sweep.pruner`` name (the rules of their fields)
+SAMPLERS: tuple[str, ...] = rule_of(SweepSettings, "sampler").choices  # type: ignore[union-attr]
+PRUNERS: tuple[str, ...] = rule_of(SweepSettings, "pruner").choices  # type: ignore[union-attr]
 
-PRUNERS = ("median", "halving", "none")
 
-
-
-@dataclass(frozen=True)
-class Settings:
-    """``cfg.sweep``, checked on construction.
+class Settings(SweepSettings):
+    """``cfg.sweep``, checked (:class:`physmend.settings.SweepSettings`: every key, its default in
+    ``conf/sweep/default.yaml``), with the sampler, the pruner and the budget it makes.
 
     ``restarts``: trainings of a diverged trial restarted before it fails (:mod:`physmend.sweep.restart`).
     ``budget`` (s of wall time, None: none) and ``max_trials``: the study has ``n_trials`` trials at
     least and as many more as the budget allows, ``max_trials`` at most (:mod:`physmend.sweep.budget`).
     """
-
-    space: str
-    n_trials: int
-    study_name: str | None
-    sampler: str
-    n_startup_trials: int
-    pruner: str
-    pruner_startup_trials: int
-    pruner_warmup_epochs: int
-    pruner_min_epochs: int
-    seed: int
-    timeout: float | None
-    heartbeat_interval: float
-    stale_after: float
-    max_failures_in_a_row: int
-    progress: bool
-    group: int = 1
-    figures: bool = True
-    workers: int = 1
-    group_shapes: bool = True
-    restarts: int = 2
-    budget: float | None = None
-    max_trials: int | None = None
 
     @property
     def budgeted(self) -> "Budget | None":
@@ -68,58 +42,11 @@ class Settings:
 
     @classmethod
     def from_cfg(cls, sweep: Any) -> Settings:
-        def number(key: str, cast: Callable[[Any], Any], minimum: float, *, optional: bool = False) -> Any:
-            value = sweep.get(key)
-            if value is None and optional:
-                return None
-            try:
-                out = cast(value)
-            except (TypeError, ValueError):
-                raise ConfigError(f"sweep.{key} must be a number >= {minimum}, but got {value!r}") from None
-            if not out >= minimum:
-                raise ConfigError(f"sweep.{key} must be >= {minimum}, but got {value!r}")
-            return out
-
-        def flag(key: str, default: bool) -> bool:
-            value = sweep.get(key, default)
-            if not isinstance(value, bool):
-                raise ConfigError(f"sweep.{key} must be true or false, but got {value!r}")
-            return value
-
-        sampler, pruner = str(sweep.get("sampler", "tpe")), str(sweep.get("pruner", "median"))
-        if sampler not in SAMPLERS:
-            raise ConfigError(f"sweep.sampler must be one of {list(SAMPLERS)}, but got {sampler!r}")
-        if pruner not in PRUNERS:
-            raise ConfigError(f"sweep.pruner must be one of {list(PRUNERS)}, but got {pruner!r}")
-        name = sweep.get("study_name")
-        budget = number("budget", float, 0, optional=True)
-        if budget is not None and not (budget > 0 and math.isfinite(budget)):
-            raise ConfigError(f"sweep.budget must be a finite number of seconds > 0 or null, but got {sweep.get('budget')!r}")
-        max_trials = number("max_trials", int, 1, optional=True)  # below n_trials: n_trials (the least)
-        return cls(
-            space=str(sweep.get("space", "default")),
-            n_trials=number("n_trials", int, 0),
-            study_name=None if name in (None, "") else str(name),
-            sampler=sampler,
-            n_startup_trials=number("n_startup_trials", int, 0),
-            pruner=pruner,
-            pruner_startup_trials=number("pruner_startup_trials", int, 0),
-            pruner_warmup_epochs=number("pruner_warmup_epochs", int, 0),
-            pruner_min_epochs=number("pruner_min_epochs", int, 1) if sweep.get("pruner_min_epochs") is not None else 10,
-            seed=number("seed", int, 0),
-            timeout=number("timeout", float, 0, optional=True),
-            heartbeat_interval=number("heartbeat_interval", float, 0.1),
-            stale_after=number("stale_after", float, 1.0),
-            max_failures_in_a_row=number("max_failures_in_a_row", int, 0),
-            progress=bool(sweep.get("progress", True)),
-            group=number("group", int, 1) if sweep.get("group") is not None else 1,
-            figures=bool(sweep.get("figures", True)),
-            workers=number("workers", int, 1) if sweep.get("workers") is not None else 1,
-            group_shapes=flag("group_shapes", True),
-            restarts=number("restarts", int, 0) if sweep.get("restarts") is not None else 2,
-            budget=budget,
-            max_trials=max_trials,
-        )
+        """The settings of the ``sweep`` group ``sweep``; a wrong one is a :class:`ConfigError`."""
+        try:
+            return cls.build(sweep, "sweep")
+        except SettingError as exc:
+            raise ConfigError(str(exc)) from None
 
     def sampler_for(self, trial_index: int) -> "optuna.samplers.BaseSampler":
         """The sampler for the study's ``trial_index``-th trial (seeded per trial: resumes reproduce)."""

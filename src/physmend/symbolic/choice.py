@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
+from physmend.settings import SymbolicSettings
 from physmend.symbolic.corrected import corrected_problem, refit
 
 #: Levenberg–Marquardt steps at most for each candidate's constants in the 'simulated' choice (the
@@ -148,7 +149,7 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     from physmend.ude.metrics import checkpoint_problem
     from physmend.ude.reference import reference
 
-    window = max(float(work.symbolic.window), 1e-300)
+    window = max(float(SymbolicSettings.build(work.symbolic).window), 1e-300)  # resolved: a number
     span = sum(float(e.split_time if e.split_time is not None else e.obs_time[-1]) - float(e.obs_time[0])
                for e in problem.experiments if e.role == "train")
     n = max(2.0, span / window)

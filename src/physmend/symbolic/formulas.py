@@ -28,6 +28,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from physmend.settings import SymbolicSettings
 from physmend.symbolic._errors import SymbolicError
 from physmend.symbolic.correction import correction_for
 from physmend.symbolic.corrected import corrected_metrics, corrected_problem, recalibratable, refit, simulate_corrected, with_parameters
@@ -75,7 +76,7 @@ def find_formulas(hybrid: Any, problem: Any, work: Any, sc: Any, traj: Any, *, k
     training trajectories, :func:`physmend.ude.analysis.training_trajectories`), chosen and re-fitted
     as the module says.
 
-    ``work``: the resolved configuration (times resolved); ``sc``: the ``symbolic`` settings;
+    ``work``: the resolved configuration (times resolved); ``sc``: the ``symbolic`` settings (:class:`physmend.settings.SymbolicSettings`);
     ``inputs``: the network inputs passed on by the sensitivity run; ``parameters``: model
     parameters that are variables of the formulas; ``scale``: parameters that only scale a form;
     ``choices``: the engineer's Pareto index per kept state; ``select``: ``"recorded"`` or
@@ -88,7 +89,7 @@ def find_formulas(hybrid: Any, problem: Any, work: Any, sc: Any, traj: Any, *, k
     data = regression_data(hybrid, problem, traj, kept, inputs, parameters, scale)
     columns, units = data.columns, data.units
     rates = None
-    window = float(work.symbolic.window)  # 'auto' resolved from the sampling interval (physmend.ude.timescale)
+    window = float(SymbolicSettings.build(work.symbolic).window)  # 'auto' resolved from the sampling interval (physmend.ude.timescale)
     if select == "recorded":
         from physmend.ude.rates import recorded_rates
 
@@ -130,7 +131,7 @@ def find_formulas(hybrid: Any, problem: Any, work: Any, sc: Any, traj: Any, *, k
     recalibrated: dict[str, float] = {}  # declared-uncertain parameter -> value re-fitted with the formulas
     iterations = int(sc.refit_epochs)
     refit_note = "constants as found by the regression (symbolic.refit_epochs=0)"
-    recal = recalibratable(corrected, corrections, work) if bool(sc.get("recalibrate", True)) else []
+    recal = recalibratable(corrected, corrections, work) if sc.recalibrate else []
     for together in ([recal, []] if recal else [[]]) if iterations > 0 else []:
         fitted, result = refit(work, corrected, ref, corrections, iterations, recalibrate=together)
         values = {constant_parameter_name(corrected.model.owner.get(c.state, ""), c.state, k): v

@@ -43,7 +43,7 @@ def equation_fronts(problem: Any, data: RegressionData, kept: list[str], scale: 
         front = fit(data.X, data.y[state], x_names, backend=str(sc.backend), target=state, units=units,
                     options=dict(sc.options or {}), seed=seed, operators=operators,
                     target_unit=equation_unit(problem.model, state, getattr(problem, "time_unit", "s")),
-                    check_units=bool(sc.get("units", True)))
+                    check_units=sc.units)
         if front.info.get("unit_rejected"):
             print(f"{state}: {front.info['unit_rejected']} formula(s) left out, their units cannot be the equation's "
                   f"(e.g. {front.info['unit_rejected_examples'][0]})")

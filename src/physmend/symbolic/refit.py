@@ -32,6 +32,7 @@ import scipy.sparse as sps
 import scipy.sparse.linalg as spla
 import torch
 
+from physmend.settings import TrainSettings
 from physmend.symbolic._errors import SymbolicError
 
 #: tensors of at most this many elements per batched solve of perturbed copies (memory guard).
@@ -99,7 +100,7 @@ class _Shooting:
         self.idx = [compiled.parameter_names.index(n) for n in names]
         self.plan = plan = plan_shooting(problem, ref.batch, cfg)
         seg0 = initial_segments(problem, ref, plan) if starts is None else starts.clone()
-        if starts is None and str(cfg.train.get("warm_start", "auto")) != "none":  # as training: from the forced records
+        if starts is None and TrainSettings.build(cfg.train).warm_start != "none":  # as training: from the forced records
             spec = HybridSpec(corrected=[], in_states=compiled.state_names[:1], in_observed=[], in_inputs=[],
                               in_parameters=[], widths=[], activation="tanh", mean=[0.0], std=[1.0], out_scale=[])
             forced = forced_trajectories(problem, ref.batch, HybridModel(compiled, spec, problem.dtype), plan.dt)
@@ -125,7 +126,7 @@ class _Shooting:
         self.N = int(plan.obs_y.numel())
         G = int(self.gaps.numel())
         self.w_fit = 1.0 / math.sqrt(max(self.N, 1))
-        self.w_gap = math.sqrt(float(cfg.train.continuity_weight) / max(G * self.n, 1))
+        self.w_gap = math.sqrt(TrainSettings.build(cfg.train).continuity_weight / max(G * self.n, 1))
         self.n_res = self.N + G * self.n
         self.n_unknowns = self.K + self.F * self.n
         declared = {v.name: v.bounds for v in problem.model.parameters if v.uncertain and v.bounds is not None}

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 from physmend.exceptions import PhysmendError
 from physmend.redact import redact
+from physmend.settings import TrackingSettings
 from physmend.tracking.probe import scheme_of
 
 if TYPE_CHECKING:
@@ -114,11 +115,11 @@ def _reason(exc: BaseException) -> str:
 DATABASE_SCHEMES = ("postgresql", "mysql", "mssql")
 
 
-def _artifact_location(tracking_cfg: Any, uri: str, db: Path | None, name: str) -> str | None:
+def _artifact_location(tracking_cfg: TrackingSettings, uri: str, db: Path | None, name: str) -> str | None:
     """Where a new experiment's artifacts go: ``tracking.artifact_location`` when set; beside an sqlite
     database; the server's choice behind an ``http(s)://`` URI. A database reached directly with no
     location set is an error: MLflow would write ``./mlruns`` in whichever folder each stage ran."""
-    chosen = tracking_cfg.get("artifact_location")
+    chosen = tracking_cfg.artifact_location
     if chosen:
         return str(chosen)
     if db is not None:
@@ -137,8 +138,9 @@ def open_store(tracking_cfg: Any) -> Store:
 
     With an sqlite store, artifacts live in ``mlartifacts/`` beside the database file.
     """
-    uri = str(tracking_cfg.uri)
-    name = str(tracking_cfg.experiment)
+    tracking_cfg = TrackingSettings.build(tracking_cfg)  # checked; missing keys: conf/tracking/default.yaml
+    uri = tracking_cfg.uri
+    name = tracking_cfg.experiment
     db = sqlite_path(uri)
     if db is not None:
         if not db.parent.is_dir():

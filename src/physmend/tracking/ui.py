@@ -18,6 +18,7 @@ import sys
 from typing import Any
 
 from physmend.redact import redact
+from physmend.settings import TrackingSettings
 from physmend.tracking.child import run_server
 from physmend.tracking.store import TrackingError, probe_store, sqlite_path
 
@@ -42,10 +43,11 @@ def ui(cfg: Any, *, host: str, port: int) -> int:
         TrackingError: the store's folder is missing or the store does not answer within
             :data:`PROBE_TIMEOUT` seconds (one line, the URI redacted).
     """
-    uri = str(cfg.tracking.uri)
+    tc = TrackingSettings.build(cfg.tracking)
+    uri = tc.uri
     if uri.lower().startswith(("http://", "https://")):  # a tracking server is its own UI
         print(f"tracking.uri is an MLflow tracking server: open {redact(page(uri.rstrip('/'), uri, cfg))} "
-              f"in a browser (experiment {cfg.tracking.experiment!r})")
+              f"in a browser (experiment {tc.experiment!r})")
         return 0
     db = sqlite_path(uri)
     if db is not None:
@@ -72,7 +74,7 @@ def page(base: str, store_uri: str | None, cfg: Any) -> str:
         os.environ.setdefault("MLFLOW_HTTP_REQUEST_TIMEOUT", "5")
         from mlflow.tracking import MlflowClient
 
-        exp = MlflowClient(tracking_uri=store_uri).get_experiment_by_name(str(cfg.tracking.experiment))
+        exp = MlflowClient(tracking_uri=store_uri).get_experiment_by_name(TrackingSettings.build(cfg.tracking).experiment)
     except Exception:  # noqa: BLE001 - the URL is a convenience; the UI starts regardless
         return base
     if exp is None:

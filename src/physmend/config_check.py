@@ -20,18 +20,6 @@ from omegaconf import DictConfig, OmegaConf
 from physmend.settings import TYPED, rule_of
 
 
-def check_value(key: str, value: Any, default: Any = None) -> Any:
-    """``value`` of the shipped setting ``key`` (``group.name``, or a top-level name) checked by its
-    field's rule; returns it, as a number where text reads as one. A key no settings class types is
-    returned as it is (``default``, the key's shipped default, is not needed: the rule is the field's).
-    Raises :class:`physmend.settings.SettingError`."""
-    group, _, name = key.rpartition(".")
-    cls = TYPED.get(group)
-    if cls is None or rule_of(cls, name) is None:
-        return value
-    return cls.check(name, value, key)
-
-
 def check_settings(cfg: DictConfig) -> None:
     """Check (and normalise: numbers given as text) every setting of a shipped group in ``cfg`` by
     the rules of its settings class, and the top-level ``seed``, ``threads`` and ``device``."""

@@ -46,15 +46,13 @@ def catalogue_candidates(inputs: list[str], units: dict[str, str], columns: dict
     from physmend.symbolic.operators import priced_size
     import itertools
 
-    from physmend.explain.catalogue import SECOND, load_catalogue
+    from physmend.explain.catalogue import SECOND, load_catalogue, shape_function
     from physmend.explain.mechanisms import fit_with_k
     from physmend.symbolic import Candidate, display, evaluate, mse_r2
 
     out, seen = [], set()
     for m in load_catalogue():
-        dummies = [sp.Symbol(f"_p{i}") for i in range(len(m.placeholders))]
-        f = (sp.lambdify(dummies + [sp.Symbol(SECOND)], m.shape.xreplace({sp.Symbol(p): d for p, d in zip(m.placeholders, dummies)}),
-                         modules="numpy") if m.k else None)  # once per form, not per assignment
+        f = shape_function(m) if m.k else None  # once per form, not per assignment
         for combo in itertools.permutations(inputs, len(m.placeholders)):
             assignment = dict(zip(m.placeholders, combo))
             if not m.admissible(assignment, units):

@@ -152,18 +152,15 @@ def train_times(tc: Any, scales: TimeScales) -> tuple[float, float, float]:
 
 
 def _window(sc: Any, scales: TimeScales) -> float:
-    """``symbolic.window`` of the ``symbolic`` group ``sc``: ``auto`` derived, else as given."""
-    from physmend.config_check import check_value
-    from physmend.settings import shipped_group
+    """``symbolic.window`` of the ``symbolic`` group ``sc`` (checked: :class:`~physmend.settings.SymbolicSettings`):
+    ``auto`` derived, else as given."""
+    from physmend.settings import SymbolicSettings
 
-    defaults = shipped_group("symbolic")
-    value = check_value("symbolic.window", sc.get("window", defaults["window"]), defaults["window"])
-    window = _given(value)
+    symbolic = SymbolicSettings.build(sc)
+    window = _given(symbolic.window)
     if window is None:
-        samples = check_value("symbolic.window_samples", sc.get("window_samples", defaults["window_samples"]),
-                              defaults["window_samples"])
         d, record = scales.sample, scales.record
-        window = max(3 * d, min(float(samples) * d, record / 10))
+        window = max(3 * d, min(float(symbolic.window_samples) * d, record / 10))
     return float(window)
 
 

@@ -19,6 +19,7 @@ USER_ERROR_NAMES: tuple[tuple[str, str], ...] = (
     ("physmend.data.errors", "DataError"),
     ("physmend.explain.catalogue", "MechanismError"),
     ("physmend.modeling.errors", "ModelError"),
+    ("physmend.settings.shipped", "SettingError"),
     ("physmend.sweep.run", "NoTrialCompleted"),
     ("physmend.simulate.errors", "SimulationError"),
     ("physmend.symbolic._errors", "SymbolicError"),

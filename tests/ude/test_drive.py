@@ -194,3 +194,25 @@ def test_the_stack_drive_table_gives_the_stack_checkpoints(user_project: Path, m
         for key in ("val.rmse", "train.rmse"):
             assert a[0][key] == pytest.approx(b[0][key], rel=1e-7)
         torch.testing.assert_close(a[1], b[1], rtol=0, atol=1e-7 * float(b[1].abs().nan_to_num().max()), equal_nan=True)
+
+
+def test_a_drive_table_over_the_memory_bound_is_not_built(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The drive table costs ``n + h1`` columns per row where the inputs had ``m``: over
+    ``TABLE_MAX_BYTES`` (a long record, a wide stack) the plain right-hand side solves, with the same
+    metrics; never an allocation in proportion to record × models × width."""
+    import physmend.ude.drive as drive
+    import physmend.ude.metrics as metrics
+
+    assert not drive.table_fits(16, 20_000, 2 + 64, torch.float64)  # a 16-model stack, 20,000 knots: 338 MB
+    assert drive.table_fits(3, 600, 2 + 16, torch.float64)
+    monkeypatch.chdir(user_project)
+    _, problem, _, hybrid, _, _ = _setup(user_project, [])
+    fast = metrics.evaluate_with(hybrid, problem, RODAS)
+    monkeypatch.setattr(drive, "TABLE_MAX_BYTES", 0)
+
+    def never(*args: object) -> None:
+        raise AssertionError("a drive table over the bound was built")
+
+    monkeypatch.setattr(metrics, "drive_table", never)
+    slow = metrics.evaluate_with(hybrid, problem, RODAS)
+    assert slow[0]["val.rmse"] == pytest.approx(fast[0]["val.rmse"], rel=1e-7)

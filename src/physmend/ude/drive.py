@@ -51,6 +51,20 @@ def drivable(hybrid: HybridModel) -> bool:
             and len(hybrid.spec.widths) > 0)
 
 
+#: the most memory a drive table (values and slopes) may take: a longer record, more stacked models or
+#: a wider first layer solve with the plain right-hand side instead (the same function; only slower).
+#: The table has ``n + h1`` columns per row where the inputs had ``m``: unbounded, a long record of a
+#: stack would cost memory in proportion (a 16-model stack of width 64 on 20,000 knots: ~330 MB).
+TABLE_MAX_BYTES = 64 * 2**20
+
+
+def table_fits(rows: int, knots: int, columns: int, dtype: torch.dtype) -> bool:
+    """Whether a drive table of ``rows`` rows on ``knots`` knots with ``columns`` columns (the states
+    plus the first hidden layer) stays within :data:`TABLE_MAX_BYTES`, counting its values and slopes."""
+    itemsize = torch.empty((), dtype=dtype).element_size()
+    return 2 * rows * knots * columns * itemsize <= TABLE_MAX_BYTES
+
+
 def split_first_layer(weight: torch.Tensor, bias: torch.Tensor, mean: torch.Tensor, std: torch.Tensor,
                       n_states: int, n_inputs: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """``W·((f − mean)/std) + b`` as ``Wu·u + Wx·x + Wp·p + b'``: the normalisation folded in.

@@ -22,7 +22,7 @@ from physmend.simulate import Batch, SimulationError, make_batch
 from physmend.simulate.initial import estimate_initial, has_unknown
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.drive import drivable, drive_table
+from physmend.ude.drive import drivable, drive_table, table_fits
 from physmend.ude.reference import solver_options, train_mask, _val_mask, held_out_apart, simulate_with, with_stops
 
 
@@ -148,7 +148,8 @@ def hybrid_states(hybrid: HybridModel, problem: Problem, batch: Batch, sim: dict
 
     def states_of(sub: Batch, u0: torch.Tensor) -> torch.Tensor:
         p = hybrid.parameters_for(sub.params)
-        if not drivable(hybrid):
+        knots = sub.inputs.knots.shape[0]
+        if not drivable(hybrid) or not table_fits(sub.size, knots, len(names) + hybrid.spec.widths[0], p.dtype):
             return simulate_with(guarded(hybrid.rhs(p), limits, sub.ids, names), sub, u0, sim)
         # the same function with the input-dependent work done once per knot (physmend.ude.drive.drive_table)
         rhs, table = drive_table(hybrid, p, sub.inputs)

@@ -43,7 +43,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from physmend.config import ConfigError
 from physmend.problem import fastest_time_constant
-from physmend.settings import TrainingSettings
+from physmend.settings import SymbolicSettings, TrainSettings, TrainingSettings, training_settings
 
 if TYPE_CHECKING:
     from physmend.problem import Problem
@@ -154,8 +154,6 @@ def train_times(tc: Any, scales: TimeScales) -> tuple[float, float, float]:
 def _window(sc: Any, scales: TimeScales) -> float:
     """``symbolic.window`` of the ``symbolic`` group ``sc`` (checked: :class:`~physmend.settings.SymbolicSettings`):
     ``auto`` derived, else as given."""
-    from physmend.settings import SymbolicSettings
-
     symbolic = SymbolicSettings.build(sc)
     window = _given(symbolic.window)
     if window is None:
@@ -177,8 +175,6 @@ def resolve_settings(settings: TrainingSettings, problem: Problem, reference: An
 def resolve_times(cfg: Any, problem: Problem, reference: Any | None = None) -> DictConfig:
     """A copy of the configuration ``cfg`` whose ``auto`` time settings are numbers (see the module
     docstring; :func:`resolve_settings` resolves a :class:`~physmend.settings.TrainingSettings`)."""
-    from physmend.settings import TrainSettings
-
     out = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
     scales = time_scales(problem, reference)
     tc = out.train
@@ -224,8 +220,6 @@ def steps_bytes(steps: int, segments: int, problem: Problem, cfgs: list[Any]) ->
 
 def memory_limit(cfg: Any) -> float:
     """``train.memory_limit_gib`` of ``cfg`` (GiB), checked (:mod:`physmend.settings`)."""
-    from physmend.settings import training_settings
-
     return float(training_settings(cfg).train.memory_limit_gib)
 
 
@@ -258,8 +252,8 @@ def resolved(cfg: Any, problem: Problem) -> Any:
     (for entry points that may be called with a freshly composed configuration)."""
     if isinstance(cfg, TrainingSettings):
         return resolve_settings(cfg, problem)
-    tc = cfg.train
-    keys = [tc.get("step", AUTO), tc.get("segment_length", AUTO), tc.get("warm_window", AUTO)]
+    tc = TrainSettings.build(cfg.train)
+    keys = [tc.step, tc.segment_length, tc.warm_window]
     if "symbolic" in cfg:
-        keys.append(cfg.symbolic.get("window", AUTO))
+        keys.append(SymbolicSettings.build(cfg.symbolic).window)
     return resolve_times(cfg, problem) if any(_is_auto(k) for k in keys) else cfg

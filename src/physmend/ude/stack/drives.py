@@ -15,7 +15,7 @@ import torch
 
 from physmend.simulate import PiecewiseLinear
 from physmend.ude.adjoint import ACTIVATIONS as ADJOINT_ACTIVATIONS, rk4_adjoint
-from physmend.ude.drive import Drives, columns, drivable, physics_drive, split_first_layer, with_physics
+from physmend.ude.drive import Drives, columns, drivable, physics_drive, split_first_layer, table_fits, with_physics
 from physmend.ude.shooting import Shooting
 from physmend.ude.stack.net import StackedNet
 
@@ -72,6 +72,9 @@ class StackDrives:
         leading dimensions (finite-difference Jacobians)."""
         h = self.template
         if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
+            return None
+        if not table_fits(p.shape[0], inputs.knots.shape[0], len(h.compiled.state_names) + net.weights[0].shape[-1],
+                          p.dtype):
             return None
         xs = inputs.values.transpose(0, 1)  # (K, m·R, n_inputs): the inputs at their knots
         linear_plus, physics = physics_drive(h, p, xs)

@@ -37,6 +37,20 @@ class StackDrives:
             pre = pre + (p[:, h.param_idx].reshape(m, r, -1) @ wp.transpose(1, 2))[None]
         return wu, pre
 
+    def _drives_apply(self, net: StackedNet) -> bool:
+        """Whether the drive form applies to the stack (:func:`~physmend.ude.drive.drivable`, no observed
+        features, a hidden layer in every model)."""
+        return (drivable(self.template) and net.use[0] is None
+                and all(mem.hybrid.spec.widths for mem in self.members))
+
+    def _network_split(self, net: StackedNet, m: int, p: torch.Tensor, xs: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """The first layer's state weights transposed ``(M, n_in_states, b)``, its input, parameter
+        and bias part ``(H, M, r, b)`` (:meth:`_first_layer`) and the equations' inverse coefficients (or None)."""
+        wu, pre = self._first_layer(net, m, p, xs)
+        coef = self._coef(p)
+        return wu.transpose(1, 2), pre, None if coef is None else coef.reciprocal()
+
     def _drive(self, net: StackedNet, m: int, p: torch.Tensor, xs: torch.Tensor,
                shared: tuple[torch.Tensor, torch.Tensor] | None = None
                ) -> tuple[Callable[[torch.Tensor, Any], torch.Tensor], Drives] | None:
@@ -45,15 +59,12 @@ class StackDrives:
         ``shared = (p_small, rows)`` with ``p = p_small[rows]``: the physics keeps one matrix per
         row of ``p_small`` (:class:`~physmend.modeling.compile.BoundRhs`)."""
         h = self.template
-        if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
+        if not self._drives_apply(net):
             return None
         linear_plus, physics = physics_drive(h, p, xs) if shared is None else physics_drive(h, shared[0], xs, shared[1])
         rows = p.shape[0]
         r = rows // m
-        wu, pre = self._first_layer(net, m, p, xs)
-        wu_t = wu.transpose(1, 2)  # (M, n_in_states, b)
-        coef = self._coef(p)
-        inv = None if coef is None else coef.reciprocal()
+        wu_t, pre, inv = self._network_split(net, m, p, xs)
         state_idx, index = columns(h)
 
         def f(u: torch.Tensor, drive: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -71,7 +82,7 @@ class StackDrives:
         model; None where the drives do not apply (:meth:`_drive`). ``u (..., m·R, n)`` may have
         leading dimensions (finite-difference Jacobians)."""
         h = self.template
-        if not drivable(h) or net.use[0] is not None or not all(mem.hybrid.spec.widths for mem in self.members):
+        if not self._drives_apply(net):
             return None
         if not table_fits(p.shape[0], inputs.knots.shape[0], len(h.compiled.state_names) + net.weights[0].shape[-1],
                           p.dtype):
@@ -80,10 +91,7 @@ class StackDrives:
         linear_plus, physics = physics_drive(h, p, xs)
         rows = p.shape[0]
         r = rows // m
-        wu, pre = self._first_layer(net, m, p, xs)
-        wu_t = wu.transpose(1, 2)  # (M, n_in_states, b)
-        coef = self._coef(p)
-        inv = None if coef is None else coef.reciprocal()
+        wu_t, pre, inv = self._network_split(net, m, p, xs)
         state_idx, index = columns(h)
         n = physics.shape[-1]
         table = PiecewiseLinear(inputs.knots, torch.cat([physics, pre.reshape(xs.shape[0], rows, -1)], -1)

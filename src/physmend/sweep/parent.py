@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 def _parent_tags(cfg: DictConfig, space: SearchSpace, study_name: str, storage_url: str, source_run_id: str | None) -> dict[str, str]:
     from physmend.tracking import DATA_TAG, MODEL_TAG, SOURCE_TAG, STAGE_TAG
     from physmend.tracking import selection as sel
+    from physmend.tracking import write_tags
 
     return {
         STAGE_TAG: "sweep",
@@ -88,6 +89,7 @@ def _parent_run(study: Any, created: bool, store: "Store", make: Callable[[], st
 def _finish_parent(sweep: Sweep, status: str) -> Tally:
     """Record counts and the best trial on the parent; end it when no other worker still runs trials."""
     from physmend.tracking import selection as sel
+    from physmend.tracking import write_tags
 
     client = sweep.store.client
     trials = sweep.study.get_trials(deepcopy=False)
@@ -106,7 +108,7 @@ def _finish_parent(sweep: Sweep, status: str) -> Tally:
     from mlflow.entities import Metric
 
     client.log_batch(parent, metrics=[Metric(k, float(v), ts, 0) for k, v in metrics.items()])
-    client.set_tag(parent, "physmend.n_trials", str(sweep.n_trials))
+    write_tags(client, parent, {"physmend.n_trials": str(sweep.n_trials)})
     if counts.running == 0:  # otherwise the last worker to finish ends it
         client.set_terminated(parent, status)
     return counts

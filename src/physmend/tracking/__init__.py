@@ -25,7 +25,7 @@ from physmend.tracking.selection import (
     load_trial,
     select,
 )
-from physmend.tracking.store import Store, TrackingError, open_store, sqlite_path
+from physmend.tracking.store import Store, TrackingError, open_store, sqlite_path, write_tags
 
 __all__ = [
     "BEST_TAG",
@@ -51,4 +51,5 @@ __all__ = [
     "select",
     "sqlite_path",
     "stage_run",
+    "write_tags",
 ]

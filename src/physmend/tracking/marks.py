@@ -29,6 +29,8 @@ import json
 import time
 from typing import TYPE_CHECKING, Any
 
+from physmend.tracking.store import write_tags
+
 if TYPE_CHECKING:
     from physmend.tracking.store import Store
 
@@ -89,20 +91,19 @@ def mark(store: "Store", sweep_run_id: str, best_run_id: str | None, selected_ru
                                  f"tags.`{_PARENT_TAG}` = '{sweep_run_id}'")
     for run in earlier:
         if run.info.run_id not in wanted:
-            client.set_tag(run.info.run_id, RUN_NAME_TAG, trial_name(_number(run), _value(run)))
-            client.set_tag(run.info.run_id, MARKED_TAG, "false")
+            write_tags(client, run.info.run_id, {RUN_NAME_TAG: trial_name(_number(run), _value(run)),
+                                                 MARKED_TAG: "false"})
     runs = {r: client.get_run(r) for r in wanted}
     for run_id, run in runs.items():
         name = trial_name(_number(run), _value(run), best=run_id == best_run_id, selected=run_id == selected_run_id)
-        client.set_tag(run_id, RUN_NAME_TAG, name)
-        client.set_tag(run_id, MARKED_TAG, "true")
+        write_tags(client, run_id, {RUN_NAME_TAG: name, MARKED_TAG: "true"})
     sweep = client.get_run(sweep_run_id)
     study = sweep.data.tags.get(_STUDY_TAG, sweep_run_id)
     best = runs.get(best_run_id) if best_run_id else None
     chosen = runs.get(selected_run_id) if selected_run_id else None
-    client.set_tag(sweep_run_id, RUN_NAME_TAG, sweep_name(
+    write_tags(client, sweep_run_id, {RUN_NAME_TAG: sweep_name(
         study, (_number(best), _value(best)) if best is not None else None,
-        _number(chosen) if chosen is not None else None))
+        _number(chosen) if chosen is not None else None)})
 
 
 def view_state() -> dict[str, Any]:

@@ -24,7 +24,7 @@ from typing import Any, NamedTuple
 from omegaconf import DictConfig, OmegaConf
 
 from physmend.tracking.runs import STAGE_TAG, get_run
-from physmend.tracking.store import Store, TrackingError
+from physmend.tracking.store import Store, TrackingError, write_tags
 
 SWEEP_STAGE = "sweep"
 TRIAL_STAGE = "trial"
@@ -156,22 +156,22 @@ def select(store: Store, run_id: str, *, by: str | None = None) -> Selection:
 
 def record_auto_selection(store: Store, sweep_run_id: str, best_run_id: str) -> Selection:
     """Record the automatic best on the sweep run; it becomes the selection unless a person chose one."""
-    store.client.set_tag(sweep_run_id, BEST_TAG, best_run_id)
+    write_tags(store.client, sweep_run_id, {BEST_TAG: best_run_id})
     # visible in the MLflow UI: a tag on the trial itself (the runs table can show and filter it) and the
     # sweep run's description
     for other in store.client.search_runs([store.experiment_id], filter_string=f"tags.`{MARK_TAG}` = 'true' "
                                           f"and tags.`{PARENT_TAG}` = '{sweep_run_id}'"):
         if other.info.run_id != best_run_id:
-            store.client.set_tag(other.info.run_id, MARK_TAG, "false")
-    store.client.set_tag(best_run_id, MARK_TAG, "true")
+            write_tags(store.client, other.info.run_id, {MARK_TAG: "false"})
+    write_tags(store.client, best_run_id, {MARK_TAG: "true"})
     best = store.client.get_run(best_run_id)
     val = best.data.metrics.get("val.rmse")
     number = best.data.tags.get(TRIAL_NUMBER_TAG, "?")
-    store.client.set_tag(sweep_run_id, "mlflow.note.content",
+    write_tags(store.client, sweep_run_id, {"mlflow.note.content":
                          f"Best trial: [trial {number}](#/experiments/{store.experiment_id}/runs/{best_run_id}) "
                          f"(run {best_run_id})" + (f", val.rmse {val:.4g}" if val is not None else "")
                          + f". Trials are this run's children; the best carries the tag {MARK_TAG}=true and "
-                         "a ★ in its name; this run's own val.rmse is the best's.")
+                         "a ★ in its name; this run's own val.rmse is the best's."})
     sweep = store.client.get_run(sweep_run_id)
     tags = sweep.data.tags
     if tags.get(SELECTED_TAG) and tags.get(SELECTED_BY_TAG, AUTO) != AUTO:
@@ -186,9 +186,7 @@ def _write_selection(store: Store, sweep: Any, run_id: str, *, by: str) -> Selec
     previous = sweep.data.tags.get(SELECTED_TAG)
     at = utc_now()
     sweep_id = sweep.info.run_id
-    store.client.set_tag(sweep_id, SELECTED_TAG, run_id)
-    store.client.set_tag(sweep_id, SELECTED_BY_TAG, by)
-    store.client.set_tag(sweep_id, SELECTED_AT_TAG, at)
+    write_tags(store.client, sweep_id, {SELECTED_TAG: run_id, SELECTED_BY_TAG: by, SELECTED_AT_TAG: at})
     from physmend.tracking.marks import mark
 
     best = store.client.get_run(sweep_id).data.tags.get(BEST_TAG)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -131,6 +133,35 @@ def _artifact_location(tracking_cfg: TrackingSettings, uri: str, db: Path | None
             "tracking server on it (mlflow server --backend-store-uri … --artifacts-destination …) and set "
             "tracking.uri=http://HOST:PORT (docs/many-machines.md)")
     return None
+
+
+#: tries of a tag write that met another writer's insert of the same key (then it finds the key and updates it)
+TAG_ATTEMPTS = 5
+
+
+def write_tags(client: "MlflowClient", run_id: str, tags: dict[str, str]) -> None:
+    """Set ``tags`` on the run ``run_id`` in one batch, also while other workers write the same run.
+
+    A sweep's parent run and its marked trials are written by every worker that finishes (their
+    selection, names, best): MLflow's database store reads that a tag is absent and then inserts it,
+    so two writers setting the same new key at once collide on the tags table's unique key
+    (``UNIQUE constraint failed`` in sqlite, ``duplicate key`` in PostgreSQL). A batch write retries
+    within the store; a write that still collides is tried again here, up to ``TAG_ATTEMPTS`` times.
+    """
+    from mlflow.entities import RunTag
+    from mlflow.exceptions import MlflowException
+
+    batch = [RunTag(key, str(value)) for key, value in tags.items()]
+    for attempt in range(TAG_ATTEMPTS):
+        try:
+            client.log_batch(run_id, tags=batch)
+            return
+        except MlflowException as exc:
+            text = str(exc).lower()
+            collided = any(word in text for word in ("unique", "duplicate key", "integrity", "failed to set tags"))
+            if not collided or attempt == TAG_ATTEMPTS - 1:
+                raise
+            time.sleep(0.1 * (attempt + 1) + 0.2 * random.random())
 
 
 def open_store(tracking_cfg: Any) -> Store:

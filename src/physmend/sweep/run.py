@@ -112,9 +112,9 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
         status = "FAILED"
         for proc in helpers:  # their running trials are marked FAIL (interrupted) once their heartbeats go stale
             proc.terminate()
-        from physmend.tracking import ERROR_TAG
+        from physmend.tracking import ERROR_TAG, write_tags
 
-        sweep.store.client.set_tag(sweep.parent_run_id, ERROR_TAG, redact(f"{type(exc).__name__}: {exc}")[:5000])
+        write_tags(sweep.store.client, sweep.parent_run_id, {ERROR_TAG: redact(f"{type(exc).__name__}: {exc}")[:5000]})
         raise
     finally:
         bar.close()

@@ -347,6 +347,7 @@ def score(example: Path, folder: Path, score_: Score) -> Score:
     if not ids.get("propose"):
         score_.error = score_.error or "no proposal (see discover.log)"
         return score_
+    os.environ.setdefault("MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR", "false")  # the scoring's downloads: no bars in the log
     mlflow.set_tracking_uri(f"sqlite:///{folder / 'mlflow.db'}")
     client = MlflowClient()
     mask = client.get_run(ids["mask"])

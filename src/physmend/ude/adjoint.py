@@ -65,7 +65,8 @@ class _Solve(torch.autograd.Function):
 
     The forward solve keeps, per stage, the state it evaluated, each hidden layer's pre-activation
     and the network's output, and per clamp the state before it; the backward pass derives the
-    activations, their derivatives and the clamp masks of all stages at once from those."""
+    activations, their derivatives and the clamp masks of all stages at once from those. Both write
+    each stage's values straight into one buffer per kind (``out=``), so nothing is stacked after."""
 
     @staticmethod
     def forward(ctx, meta, u0, A, d, pre, wu, gain, *layers):  # noqa: ANN001, ANN205
@@ -73,21 +74,20 @@ class _Solve(torch.autograd.Function):
         act = _FUNCTIONS[activation]
         M, S, _ = pre.shape[1:]
         R, n = u0.shape
+        T = 4 * steps
         weights, biases = layers[0::2], layers[1::2]
         boxed = lo is not None
-        V: list[torch.Tensor] = []  # the state each stage evaluates f at: T = 4K × (R, n)
-        PRE: list[list[torch.Tensor]] = [[] for _ in range(len(weights))]  # per hidden layer, T × (M, S, w)
-        OUT: list[torch.Tensor] = []  # the network's output before the gain: T × (M, S, k)
-        UNHELD: list[torch.Tensor] = []  # 4 per step: the state before each clamp (stages 2-4, the step's end)
-
-        def hold(v: torch.Tensor) -> torch.Tensor:
-            if not boxed:
-                return v
-            UNHELD.append(v)
-            return torch.clamp(v, lo, hi)
-
         # one model: plain 2-D products (fewer operations than batched ones of one matrix)
         flat = M == 1
+        rows = (S,) if flat else (M, S)
+        new = u0.new_empty
+        traj = new(steps + 1, R, n)  # the grid points; stage 1 of step k evaluates traj[k]
+        V = new(steps, 3, R, n)  # the state stages 2-4 evaluate f at
+        # per hidden layer the pre-activation, and the network's output before the gain, of every stage
+        PRE = [new(T, *rows, w.shape[-1]) for w in (wu, *weights[:-1])]
+        OUT = new(T, *rows, weights[-1].shape[-1])
+        UNHELD = new(T, R, n) if boxed else None  # per step the states before its clamps: stages 2-4, its end
+
         lin = torch.addmm if flat else torch.baddbmm
         net_w = [w[0] for w in weights] if flat else list(weights)
         net_b = [b[0] for b in biases] if flat else list(biases)
@@ -96,37 +96,41 @@ class _Solve(torch.autograd.Function):
         pres = (pre[:, 0] if flat else pre).unbind(0)
         drives = d.unsqueeze(-1).unbind(0)
 
-        def f(v: torch.Tensor, j: int) -> torch.Tensor:
-            V.append(v)
+        def f(v: torch.Tensor, j: int, i: int) -> torch.Tensor:
             vm = v if flat else v.view(M, S, n)
-            a = lin(pres[j], vm if reads is None else vm[..., reads], w_first)
-            PRE[0].append(a)
+            a = lin(pres[i], vm if reads is None else vm[..., reads], w_first, out=PRE[0][j])
             y = act(a)
             for l in range(1, len(net_w)):
-                a = lin(net_b[l - 1], y, net_w[l - 1])
-                PRE[l].append(a)
+                a = lin(net_b[l - 1], y, net_w[l - 1], out=PRE[l][j])
                 y = act(a)
-            out = lin(net_b[-1], y, net_w[-1])
-            OUT.append(out)
+            out = lin(net_b[-1], y, net_w[-1], out=OUT[j])
             corr = (out * g_net).view(R, -1)
-            du = torch.baddbmm(drives[j], A, v.unsqueeze(-1)).squeeze(-1)
+            du = torch.baddbmm(drives[i], A, v.unsqueeze(-1)).squeeze(-1)
             return du.add_(corr) if index is None else du.index_add_(-1, index, corr)
 
+        def stage(u: torch.Tensor, k_prev: torch.Tensor, alpha: float, k: int, s: int) -> torch.Tensor:
+            """The state stage ``s`` (1-3: RK4's stages 2-4) of step ``k`` evaluates f at."""
+            if not boxed:
+                return torch.add(u, k_prev, alpha=alpha, out=V[k, s - 1])
+            return torch.clamp(torch.add(u, k_prev, alpha=alpha, out=UNHELD[4 * k + s - 1]), lo, hi, out=V[k, s - 1])
+
         with torch.no_grad():
-            u = u0
-            traj = [u]
+            traj[0] = u0
             for k in range(steps):
-                k1 = f(u, 2 * k)
-                k2 = f(hold(torch.add(u, k1, alpha=0.5 * h)), 2 * k + 1)
-                k3 = f(hold(torch.add(u, k2, alpha=0.5 * h)), 2 * k + 1)
-                k4 = f(hold(torch.add(u, k3, alpha=h)), 2 * k + 2)
-                u = hold(torch.add(u, torch.add(k1, torch.add(k2, k3), alpha=2.0).add_(k4), alpha=h / 6.0))
-                traj.append(u)
-            out = torch.stack(traj)
+                u = traj[k]
+                k1 = f(u, 4 * k, 2 * k)
+                k2 = f(stage(u, k1, 0.5 * h, k, 1), 4 * k + 1, 2 * k + 1)
+                k3 = f(stage(u, k2, 0.5 * h, k, 2), 4 * k + 2, 2 * k + 1)
+                k4 = f(stage(u, k3, h, k, 3), 4 * k + 3, 2 * k + 2)
+                incr = torch.add(k1, torch.add(k2, k3), alpha=2.0).add_(k4)
+                if boxed:
+                    torch.clamp(torch.add(u, incr, alpha=h / 6.0, out=UNHELD[4 * k + 3]), lo, hi, out=traj[k + 1])
+                else:
+                    torch.add(u, incr, alpha=h / 6.0, out=traj[k + 1])
         ctx.meta, ctx.shape, ctx.gain_shape = meta, (M, S, R, n), gain.shape
-        ctx.stages = (V, PRE, OUT, UNHELD)
+        ctx.stages = (traj, V, PRE, OUT, UNHELD)
         ctx.save_for_backward(A, wu, gain, *layers)
-        return out
+        return traj.clone()
 
     @staticmethod
     def backward(ctx, grad):  # noqa: ANN001, ANN205, PLR0915
@@ -135,38 +139,31 @@ class _Solve(torch.autograd.Function):
         h, steps, lo, hi, reads, index, activation = ctx.meta
         act, dact = _FUNCTIONS[activation], _DERIVATIVES[activation]
         M, S, R, n = ctx.shape
-        V, PRE, OUT, UNHELD = ctx.stages
+        traj, V, PRE, OUT, UNHELD = ctx.stages
         boxed = lo is not None
         T = 4 * steps
         need = ctx.needs_input_grad
+        flat = M == 1  # plain 2-D products, as forward
         with torch.no_grad():
-            pres = [torch.stack(p).view(T, M, S, -1) for p in PRE]  # (T, M, S, w) per hidden layer
-            ys = [act(a) for a in pres]
-            dys = [dact(a, y).view(T, *a.shape[2 if M == 1 else 1:]).unbind(0) for a, y in zip(pres, ys)]  # per layer, T × (M, S, w)
+            ys = [act(a) for a in PRE]  # per hidden layer (T, …, w)
+            dys = [dact(a, y).unbind(0) for a, y in zip(PRE, ys)]  # per layer, T × (…, w)
             if boxed:
-                unheld = torch.stack(UNHELD)
-                masks = ((unheld >= lo) & (unheld <= hi)).to(unheld.dtype).unbind(0)  # 4K × (R, n)
-            flat = M == 1  # plain 2-D products, as forward
+                masks = ((UNHELD >= lo) & (UNHELD <= hi)).to(UNHELD.dtype).unbind(0)  # 4K × (R, n)
             mm = torch.mm if flat else torch.bmm
             wts = [w[0].T if flat else w.transpose(1, 2) for w in weights]  # (M, b, a)
             wut = wu[0].T if flat else wu.transpose(1, 2)
             g_net = gain.reshape(gain.shape[-2:]) if flat else gain
 
             At = A  # g·A is Aᵀg for row vectors
-            g_stage: list[torch.Tensor] = [grad[0]] * T  # what each stage's f received (R, n)
-            ga_stage: list[list[torch.Tensor]] = [[] for _ in range(len(weights) + 1)]  # per layer, T × ∂pre-activation
-            for lst in ga_stage:
-                lst.extend([grad[0]] * T)
+            G = grad.new_empty(T, R, n)  # what each stage's f received
+            GA = [torch.empty_like(a) for a in PRE] + [torch.empty_like(OUT)]  # per layer ∂pre-activation, the output layer last
 
             def vjp(j: int, g: torch.Tensor) -> torch.Tensor:
-                """``J_f(v_j)ᵀ g`` for ``g (R, n)``; records what the weight gradients need."""
-                g_stage[j] = g
+                """``J_f(v_j)ᵀ g`` for ``g = G[j] (R, n)``; records what the weight gradients need."""
                 gc = g if index is None else g[:, index]
-                ga = (gc if flat else gc.view(M, S, -1)) * g_net
-                ga_stage[-1][j] = ga
+                ga = torch.mul(gc if flat else gc.view(M, S, -1), g_net, out=GA[-1][j])
                 for l in range(len(wts) - 1, -1, -1):
-                    ga = mm(ga, wts[l]).mul_(dys[l][j])
-                    ga_stage[l][j] = ga
+                    ga = mm(ga, wts[l], out=GA[l][j]).mul_(dys[l][j])
                 gv = torch.bmm(g.unsqueeze(1), At).squeeze(1)
                 gr = mm(ga, wut).view(R, -1)
                 return gv.add_(gr) if reads is None else gv.index_add_(-1, reads, gr)
@@ -178,23 +175,22 @@ class _Solve(torch.autograd.Function):
                     lam = lam * masks[4 * k + 3]
                 j = 4 * k
                 g23 = lam * (h / 3.0)
-                g14 = lam * (h / 6.0)
+                g14 = torch.mul(lam, h / 6.0, out=G[j + 3])
                 l4 = vjp(j + 3, g14)
                 if boxed:
                     l4 = l4.mul_(masks[4 * k + 2])
-                l3 = vjp(j + 2, torch.add(g23, l4, alpha=h))
+                l3 = vjp(j + 2, torch.add(g23, l4, alpha=h, out=G[j + 2]))
                 if boxed:
                     l3 = l3.mul_(masks[4 * k + 1])
-                l2 = vjp(j + 1, torch.add(g23, l3, alpha=0.5 * h))
+                l2 = vjp(j + 1, torch.add(g23, l3, alpha=0.5 * h, out=G[j + 1]))
                 if boxed:
                     l2 = l2.mul_(masks[4 * k])
-                l1 = vjp(j, torch.add(g14, l2, alpha=0.5 * h))
+                l1 = vjp(j, torch.add(g14, l2, alpha=0.5 * h, out=G[j]))
                 lam = lam + l4 + l3 + l2 + l1
             g_u0 = lam + grad[0]
 
             # every other gradient summed over the T stages at once
-            G = torch.stack(g_stage)  # (T, R, n)
-            Vs = torch.stack(V)  # (T, R, n)
+            Vs = torch.cat((traj[:-1].unsqueeze(1), V), dim=1).view(T, R, n)  # the state each stage evaluated
             g_A = torch.bmm(G.permute(1, 2, 0), Vs.transpose(0, 1)) if need[2] else None
             H = 2 * steps + 1
 
@@ -206,8 +202,8 @@ class _Solve(torch.autograd.Function):
                 out[2::2] += xs[:, 3]
                 return out
 
+            GA = [t.view(T, M, S, -1) for t in GA]  # (T, M, S, w) per layer, the output layer last
             g_d = at_half_steps(G) if need[3] else None
-            GA = [torch.stack(lst).view(T, M, S, -1) for lst in ga_stage]  # (T, M, S, w) per layer, the output layer last
             g_pre = at_half_steps(GA[0]) if need[4] else None
 
             def rows(t: torch.Tensor) -> torch.Tensor:  # (T, M, S, w) -> (M, T·S, w)
@@ -220,10 +216,11 @@ class _Solve(torch.autograd.Function):
             g_gain = None
             if need[6]:
                 gc = G if index is None else G[..., index]
-                g_gain = _reduce_to((gc.view(T, M, S, -1) * torch.stack(OUT).view(T, M, S, -1)).sum(0), ctx.gain_shape)
+                g_gain = _reduce_to((gc.view(T, M, S, -1) * OUT.view(T, M, S, -1)).sum(0), ctx.gain_shape)
             g_layers: list[torch.Tensor | None] = []
             for l in range(len(weights)):
-                g_layers.append(torch.bmm(rows(ys[l]).transpose(1, 2), rows(GA[l + 1])) if need[7 + 2 * l] else None)
+                y = ys[l].view(T, M, S, -1)
+                g_layers.append(torch.bmm(rows(y).transpose(1, 2), rows(GA[l + 1])) if need[7 + 2 * l] else None)
                 g_layers.append(GA[l + 1].sum(dim=(0, 2)).unsqueeze(1) if need[8 + 2 * l] else None)
         return (None, g_u0, g_A, g_d, g_pre, g_wu, g_gain, *g_layers)
 

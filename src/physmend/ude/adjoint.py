@@ -95,15 +95,19 @@ class _Solve(torch.autograd.Function):
         g_net = gain.reshape(gain.shape[-2:]) if flat else gain
         pres = (pre[:, 0] if flat else pre).unbind(0)
         drives = d.unsqueeze(-1).unbind(0)
+        # each buffer's rows as views made at once (one call, not one indexing per stage)
+        pre_at, out_at = [b.unbind(0) for b in PRE], OUT.unbind(0)
+        point, state_at = traj.unbind(0), V.view(3 * steps, R, n).unbind(0)
+        unheld_at = UNHELD.unbind(0) if boxed else ()
 
         def f(v: torch.Tensor, j: int, i: int) -> torch.Tensor:
             vm = v if flat else v.view(M, S, n)
-            a = lin(pres[i], vm if reads is None else vm[..., reads], w_first, out=PRE[0][j])
+            a = lin(pres[i], vm if reads is None else vm[..., reads], w_first, out=pre_at[0][j])
             y = act(a)
             for l in range(1, len(net_w)):
-                a = lin(net_b[l - 1], y, net_w[l - 1], out=PRE[l][j])
+                a = lin(net_b[l - 1], y, net_w[l - 1], out=pre_at[l][j])
                 y = act(a)
-            out = lin(net_b[-1], y, net_w[-1], out=OUT[j])
+            out = lin(net_b[-1], y, net_w[-1], out=out_at[j])
             corr = (out * g_net).view(R, -1)
             du = torch.baddbmm(drives[i], A, v.unsqueeze(-1)).squeeze(-1)
             return du.add_(corr) if index is None else du.index_add_(-1, index, corr)
@@ -111,22 +115,23 @@ class _Solve(torch.autograd.Function):
         def stage(u: torch.Tensor, k_prev: torch.Tensor, alpha: float, k: int, s: int) -> torch.Tensor:
             """The state stage ``s`` (1-3: RK4's stages 2-4) of step ``k`` evaluates f at."""
             if not boxed:
-                return torch.add(u, k_prev, alpha=alpha, out=V[k, s - 1])
-            return torch.clamp(torch.add(u, k_prev, alpha=alpha, out=UNHELD[4 * k + s - 1]), lo, hi, out=V[k, s - 1])
+                return torch.add(u, k_prev, alpha=alpha, out=state_at[3 * k + s - 1])
+            return torch.clamp(torch.add(u, k_prev, alpha=alpha, out=unheld_at[4 * k + s - 1]), lo, hi,
+                               out=state_at[3 * k + s - 1])
 
         with torch.no_grad():
-            traj[0] = u0
+            point[0].copy_(u0)
             for k in range(steps):
-                u = traj[k]
+                u = point[k]
                 k1 = f(u, 4 * k, 2 * k)
                 k2 = f(stage(u, k1, 0.5 * h, k, 1), 4 * k + 1, 2 * k + 1)
                 k3 = f(stage(u, k2, 0.5 * h, k, 2), 4 * k + 2, 2 * k + 1)
                 k4 = f(stage(u, k3, h, k, 3), 4 * k + 3, 2 * k + 2)
                 incr = torch.add(k1, torch.add(k2, k3), alpha=2.0).add_(k4)
                 if boxed:
-                    torch.clamp(torch.add(u, incr, alpha=h / 6.0, out=UNHELD[4 * k + 3]), lo, hi, out=traj[k + 1])
+                    torch.clamp(torch.add(u, incr, alpha=h / 6.0, out=unheld_at[4 * k + 3]), lo, hi, out=point[k + 1])
                 else:
-                    torch.add(u, incr, alpha=h / 6.0, out=traj[k + 1])
+                    torch.add(u, incr, alpha=h / 6.0, out=point[k + 1])
         ctx.meta, ctx.shape, ctx.gain_shape = meta, (M, S, R, n), gain.shape
         ctx.stages = (traj, V, PRE, OUT, UNHELD)
         ctx.save_for_backward(A, wu, gain, *layers)
@@ -157,13 +162,14 @@ class _Solve(torch.autograd.Function):
             At = A  # g·A is Aᵀg for row vectors
             G = grad.new_empty(T, R, n)  # what each stage's f received
             GA = [torch.empty_like(a) for a in PRE] + [torch.empty_like(OUT)]  # per layer ∂pre-activation, the output layer last
+            g_at, ga_at = G.unbind(0), [b.unbind(0) for b in GA]  # their rows, as in forward
 
             def vjp(j: int, g: torch.Tensor) -> torch.Tensor:
                 """``J_f(v_j)ᵀ g`` for ``g = G[j] (R, n)``; records what the weight gradients need."""
                 gc = g if index is None else g[:, index]
-                ga = torch.mul(gc if flat else gc.view(M, S, -1), g_net, out=GA[-1][j])
+                ga = torch.mul(gc if flat else gc.view(M, S, -1), g_net, out=ga_at[-1][j])
                 for l in range(len(wts) - 1, -1, -1):
-                    ga = mm(ga, wts[l], out=GA[l][j]).mul_(dys[l][j])
+                    ga = mm(ga, wts[l], out=ga_at[l][j]).mul_(dys[l][j])
                 gv = torch.bmm(g.unsqueeze(1), At).squeeze(1)
                 gr = mm(ga, wut).view(R, -1)
                 return gv.add_(gr) if reads is None else gv.index_add_(-1, reads, gr)
@@ -175,17 +181,17 @@ class _Solve(torch.autograd.Function):
                     lam = lam * masks[4 * k + 3]
                 j = 4 * k
                 g23 = lam * (h / 3.0)
-                g14 = torch.mul(lam, h / 6.0, out=G[j + 3])
+                g14 = torch.mul(lam, h / 6.0, out=g_at[j + 3])
                 l4 = vjp(j + 3, g14)
                 if boxed:
                     l4 = l4.mul_(masks[4 * k + 2])
-                l3 = vjp(j + 2, torch.add(g23, l4, alpha=h, out=G[j + 2]))
+                l3 = vjp(j + 2, torch.add(g23, l4, alpha=h, out=g_at[j + 2]))
                 if boxed:
                     l3 = l3.mul_(masks[4 * k + 1])
-                l2 = vjp(j + 1, torch.add(g23, l3, alpha=0.5 * h, out=G[j + 1]))
+                l2 = vjp(j + 1, torch.add(g23, l3, alpha=0.5 * h, out=g_at[j + 1]))
                 if boxed:
                     l2 = l2.mul_(masks[4 * k])
-                l1 = vjp(j, torch.add(g14, l2, alpha=0.5 * h, out=G[j]))
+                l1 = vjp(j, torch.add(g14, l2, alpha=0.5 * h, out=g_at[j]))
                 lam = lam + l4 + l3 + l2 + l1
             g_u0 = lam + grad[0]
 

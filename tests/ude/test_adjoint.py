@@ -133,3 +133,5 @@ def test_training_with_the_adjoint_is_training_with_autograd(short_project: Path
         for key in theirs:
             torch.testing.assert_close(ours[key], theirs[key], rtol=1e-8, atol=1e-11, msg=key)
         assert a.val_rmse == pytest.approx(b.val_rmse, rel=1e-8)
+    # the shipped default is the adjoint (the seventh proving pass: the same formulas on every example)
+    assert _cfg(short_project, *trials[0]).train.backward == "adjoint"

@@ -23,7 +23,6 @@ if TYPE_CHECKING:
 def _parent_tags(cfg: DictConfig, space: SearchSpace, study_name: str, storage_url: str, source_run_id: str | None) -> dict[str, str]:
     from physmend.tracking import DATA_TAG, MODEL_TAG, SOURCE_TAG, STAGE_TAG
     from physmend.tracking import selection as sel
-    from physmend.tracking import write_tags
 
     return {
         STAGE_TAG: "sweep",

@@ -112,26 +112,21 @@ class _Solve(torch.autograd.Function):
             du = torch.baddbmm(drives[i], A, v.unsqueeze(-1)).squeeze(-1)
             return du.add_(corr) if index is None else du.index_add_(-1, index, corr)
 
-        def stage(u: torch.Tensor, k_prev: torch.Tensor, alpha: float, k: int, s: int) -> torch.Tensor:
-            """The state stage ``s`` (1-3: RK4's stages 2-4) of step ``k`` evaluates f at."""
+        def held(u: torch.Tensor, du: torch.Tensor, alpha: float, into: torch.Tensor, i: int) -> torch.Tensor:
+            """``u + alpha·du`` written into ``into``, held in the box (the value before it kept as clamp ``i``)."""
             if not boxed:
-                return torch.add(u, k_prev, alpha=alpha, out=state_at[3 * k + s - 1])
-            return torch.clamp(torch.add(u, k_prev, alpha=alpha, out=unheld_at[4 * k + s - 1]), lo, hi,
-                               out=state_at[3 * k + s - 1])
+                return torch.add(u, du, alpha=alpha, out=into)
+            return torch.clamp(torch.add(u, du, alpha=alpha, out=unheld_at[i]), lo, hi, out=into)
 
         with torch.no_grad():
             point[0].copy_(u0)
             for k in range(steps):
                 u = point[k]
                 k1 = f(u, 4 * k, 2 * k)
-                k2 = f(stage(u, k1, 0.5 * h, k, 1), 4 * k + 1, 2 * k + 1)
-                k3 = f(stage(u, k2, 0.5 * h, k, 2), 4 * k + 2, 2 * k + 1)
-                k4 = f(stage(u, k3, h, k, 3), 4 * k + 3, 2 * k + 2)
-                incr = torch.add(k1, torch.add(k2, k3), alpha=2.0).add_(k4)
-                if boxed:
-                    torch.clamp(torch.add(u, incr, alpha=h / 6.0, out=unheld_at[4 * k + 3]), lo, hi, out=point[k + 1])
-                else:
-                    torch.add(u, incr, alpha=h / 6.0, out=point[k + 1])
+                k2 = f(held(u, k1, 0.5 * h, state_at[3 * k], 4 * k), 4 * k + 1, 2 * k + 1)
+                k3 = f(held(u, k2, 0.5 * h, state_at[3 * k + 1], 4 * k + 1), 4 * k + 2, 2 * k + 1)
+                k4 = f(held(u, k3, h, state_at[3 * k + 2], 4 * k + 2), 4 * k + 3, 2 * k + 2)
+                held(u, torch.add(k1, torch.add(k2, k3), alpha=2.0).add_(k4), h / 6.0, point[k + 1], 4 * k + 3)
         ctx.meta, ctx.shape, ctx.gain_shape = meta, (M, S, R, n), gain.shape
         ctx.stages = (traj, V, PRE, OUT, UNHELD)
         ctx.save_for_backward(A, wu, gain, *layers)

@@ -16,6 +16,7 @@ from physmend.settings import training_settings
 from physmend.ude.timescale import resolve_settings
 from physmend.ude.stack import stack_key, train_stack
 from physmend.ude.stack.members import prepare
+from physmend.ude.stack.evaluation import clocked
 from physmend.ude.stack.solve import Stack
 from physmend.ude.metrics import evaluate_with, checkpoint_problem
 from physmend.ude.reference import solver_options, reference
@@ -195,13 +196,22 @@ def test_padded_units_stay_zero_and_rows_match_their_own_network(short_project: 
     assert len(outcomes) == 2 and all(isinstance(o, TrainingDiverged) and "no-such-method" in str(o) for o in outcomes)
 
 
-def test_checkpoints_of_records_on_different_clocks_are_solved_apart(short_project: Path,
-                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
-    """Records sampled at different times are simulated in separate solves (each takes only its own
-    steps); each model still gets the metrics its own evaluation gives."""
+@pytest.mark.parametrize("record", ["every other sample", "half a sample later"])
+def test_checkpoints_of_records_on_different_clocks_take_only_their_own_steps(
+        short_project: Path, monkeypatch: pytest.MonkeyPatch, record: str) -> None:
+    """Records sampled at different times take only their own steps: solved apart per time grid
+    where a clock per row would not pay (run2 on every other time of run1), in one solve with a clock
+    per row where it does (run2 between run1's times); each model still gets the metrics its own
+    evaluation gives."""
     monkeypatch.chdir(short_project)
     path = short_project / "recordings" / "run2.csv"
-    pd.read_csv(path).iloc[::2].to_csv(path, index=False)  # run2 every 0.2 s, run1 every 0.1 s
+    frame = pd.read_csv(path)
+    if record == "every other sample":
+        frame = frame.iloc[::2]  # run2 every 0.2 s, run1 every 0.1 s
+    else:
+        # times count from each record's start: every row but the first half a sample later
+        frame.loc[frame.index[1:], "t_s"] += 0.5 * float(frame["t_s"].diff().median())
+    frame.to_csv(path, index=False)
     cfgs = [_cfg(short_project, *t, warm_start="none") for t in TRIALS[:2]]
     problem = load_problem(cfgs[0])
     ref = reference(problem, cfgs[0])
@@ -212,8 +222,10 @@ def test_checkpoints_of_records_on_different_clocks_are_solved_apart(short_proje
     assert [e.id for e in checked.experiments] == ["run1", "run2"]
     assert [exps for exps, _, _ in stack.parts] == [[0], [1]]
     # tight tolerances: the union-of-times solve and the separate ones step differently, and at
-    # the default rtol their answers may differ by more than the rel 1e-4 compared here
-    sim = {**solver_options(cfgs[0]), "rtol": 1e-8, "atol": 1e-10}
+    # the default rtol their answers may differ by more than the rel 1e-4 compared here; a solver
+    # with a clock per row
+    sim = {**solver_options(cfgs[0]), "method": "rodas4", "rtol": 1e-8, "atol": 1e-10}
+    assert clocked(sim, stack.eval_batch) == (record == "half a sample later")
     checkpoints = stack.evaluate([0, 1], sim)
     for i, mem in enumerate(stack.members):
         stack.write_back(i)
@@ -222,8 +234,10 @@ def test_checkpoints_of_records_on_different_clocks_are_solved_apart(short_proje
         assert set(got) == set(alone)
         for key, value in alone.items():
             assert got[key] == pytest.approx(value, rel=1e-4), key
-        # outputs on the union of times: run2 has values at its own times only
-        assert bool(torch.isfinite(y[:, 0]).all()) and int(torch.isfinite(y[:, 1]).all(-1).sum()) == len(checked.experiments[1].obs_time)
+        # outputs on the union of times: each record has values at each of its own times
+        for b, e in enumerate(checked.experiments):
+            own = torch.isfinite(stack.eval_batch.obs[:, b]).any(-1)
+            assert int(own.sum()) == len(e.obs_time) and bool(torch.isfinite(y[own, b]).all())
 
 
 def test_a_stopped_or_diverging_model_leaves_the_others_alone(short_project: Path,

@@ -13,11 +13,20 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch
+from physmend.simulate.batch import own_stops
+from physmend.simulate.core import CLOCK_METHODS
 from physmend.simulate.initial import estimate_initial
 from physmend.ude.metrics import LEAVE_MARGIN, evaluate_with, guarded, metrics_of
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.reference import simulate_with, with_stops
 from physmend.ude.stack.net import StackedNet, write_back_row
+
+
+def clocked(sim: dict[str, Any], batch: Batch) -> bool:
+    """Whether a solve of ``batch`` with the solver options ``sim`` gives each row its own clock
+    (:func:`~physmend.ude.reference.simulate_with`): one solve then costs what its busiest row needs
+    (the cargo box's two records, a stack of two models: 2.0 s a checkpoint against 2.5 s per time grid)."""
+    return sim["method"] in CLOCK_METHODS and "clocks" not in sim["options"] and own_stops(batch) is not None
 
 
 class StackEvaluation:
@@ -29,8 +38,10 @@ class StackEvaluation:
 
         Checkpoints simulate the train and validation experiments; ``full`` every experiment
         (test ones included), as a final evaluation does, with outputs at every time of the batch
-        (for figures). Checkpoint experiments recorded at different times are solved apart
-        (:func:`time_grid_parts`): each set of rows takes only its own steps.
+        (for figures). Checkpoint experiments recorded at different times take only their own
+        steps: in one solve with a clock per row where the solver has clocks and they pay
+        (:func:`~physmend.simulate.batch.own_stops`; each model then steps as if alone), otherwise
+        solved apart per time grid (:func:`~physmend.ude.stack.plan.time_grid_parts`).
         """
         m = len(positions)
         problem = self.problem if full else self.checked
@@ -39,7 +50,7 @@ class StackEvaluation:
         rows = torch.tensor(positions, dtype=torch.long)
         net = self.net.select(rows)
         est = None if self.est_raw is None else self.est_raw.detach()[rows]
-        parts = [(list(range(b)), batch, None)] if full else self.parts
+        parts = [(list(range(b)), batch, None)] if full or clocked(sim, batch) else self.parts
         try:
             with torch.no_grad():
                 if len(parts) == 1:

@@ -216,3 +216,51 @@ def test_a_drive_table_over_the_memory_bound_is_not_built(user_project: Path, mo
     monkeypatch.setattr(metrics, "drive_table", never)
     slow = metrics.evaluate_with(hybrid, problem, RODAS)
     assert slow[0]["val.rmse"] == pytest.approx(fast[0]["val.rmse"], rel=1e-7)
+
+
+def test_masked_variants_in_one_solve_get_their_own_evaluations(user_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The mask's variants (the network with only some corrections) simulated in one solve, where each
+    record has its own clock, give each variant the metrics its own evaluation gives; a variant that
+    diverges makes each variant be simulated alone, that one's outcome its TrainingDiverged."""
+    import pandas as pd
+
+    import physmend.ude.metrics as metrics
+    from physmend.ude.metrics import checkpoint_problem, evaluate, evaluate_kept
+    from physmend.ude.outcome import TrainingDiverged
+    from physmend.ude.reference import clocked
+    from physmend.simulate import make_batch
+
+    monkeypatch.chdir(user_project)
+    path = user_project / "recordings" / "run2.csv"
+    frame = pd.read_csv(path)
+    frame.loc[frame.index[1:], "t_s"] += 0.05  # between run1's times (each counts from its start)
+    frame.to_csv(path, index=False)
+    _, problem, _, hybrid, _, _ = _setup(user_project, ["ude.corrected=[cart.x,cart.v]"])
+    checked = checkpoint_problem(problem)
+    assert clocked(RODAS, make_batch(checked.experiments, checked.compiled, checked.dtype))
+    corrected = list(hybrid.spec.corrected)
+    keeps = [corrected, corrected[:1], corrected[1:], []]
+    assert len(corrected) == 2
+    solves: list[int] = []
+    real = metrics.simulate_with
+    monkeypatch.setattr(metrics, "simulate_with", lambda *a, **k: solves.append(a[1].size) or real(*a, **k))
+    together = evaluate_kept(hybrid, checked, RODAS, keeps)
+    assert solves == [len(keeps) * 2]  # one solve, every variant's two records
+    assert torch.equal(hybrid.out_mask, torch.ones(2, dtype=hybrid.out_mask.dtype))
+    vals = set()
+    for keep, got in zip(keeps, together):
+        hybrid.keep_only(keep)
+        alone = evaluate(hybrid, checked, sim=RODAS)
+        assert isinstance(got, dict) and set(got) == set(alone)
+        for key, value in alone.items():
+            assert got[key] == pytest.approx(value, rel=1e-8), (keep, key)
+        vals.add(round(got["val.rmse"], 6))
+    assert len(vals) == len(keeps)  # the variants differ: the masks reached the solve
+    # a variant that leaves every range: the solve fails, and each variant is simulated alone
+    hybrid.keep_only(corrected)
+    with torch.no_grad():
+        hybrid.net[-1].bias.fill_(1e6)
+    outcomes = evaluate_kept(hybrid, checked, RODAS, [corrected, []])
+    assert isinstance(outcomes[0], TrainingDiverged)
+    hybrid.keep_only([])
+    assert outcomes[1] == evaluate(hybrid, checked, sim=RODAS)

@@ -16,10 +16,9 @@ from physmend.settings import training_settings
 from physmend.ude.timescale import resolve_settings
 from physmend.ude.stack import stack_key, train_stack
 from physmend.ude.stack.members import prepare
-from physmend.ude.stack.evaluation import clocked
 from physmend.ude.stack.solve import Stack
 from physmend.ude.metrics import evaluate_with, checkpoint_problem
-from physmend.ude.reference import solver_options, reference
+from physmend.ude.reference import clocked, solver_options, reference
 from physmend.ude.shooting import plan_shooting
 from physmend.ude.warmstart import WARM_STATS, forget_warm_starts
 

@@ -93,30 +93,35 @@ def mask_corrections(hybrid: Any, problem: Any, work: Any, mc: Any, *,
     from physmend.ude import TrainingDiverged, evaluate, train
     from physmend.ude.analysis import rank_corrections, training_trajectories
     from physmend.ude.artifacts import artifacts_of
-    from physmend.ude.metrics import checkpoint_problem
+    from physmend.ude.metrics import checkpoint_problem, evaluate_kept
+    from physmend.ude.reference import solver_options
     from physmend.ude.warmstart import measured_states
 
-    with progress("mask: ranking the corrections and simulating the full network"):
+    with progress("mask: ranking the corrections"):
         traj = training_trajectories(hybrid, problem, work)
         ranking = rank_corrections(hybrid, traj)
-        checked = checkpoint_problem(problem)  # val.rmse needs the train and validation experiments only
-        full = evaluate(hybrid, checked, work)["val.rmse"]
+    checked = checkpoint_problem(problem)  # val.rmse needs the train and validation experiments only
+    order = [n for n, _ in ranking]
+    tries = range(0) if mc.keep else range(1, min(int(mc.max_k), len(order)) + 1)
+    # the full network and every k in one solve where each experiment has its own clock (evaluate_kept)
+    with progress("mask: simulating the full network" + (f" and the top k = 1…{len(tries)} of {len(order)} corrections"
+                                                        if tries else "")):
+        outcomes = evaluate_kept(hybrid, checked, solver_options(work),
+                                 [list(hybrid.spec.corrected)] + [order[:k_try] for k_try in tries])
+    if isinstance(outcomes[0], TrainingDiverged):
+        raise outcomes[0]
+    full = outcomes[0]["val.rmse"]
     by_k: list[tuple[int, float]] = []
     if mc.keep:
         kept = [str(n) for n in mc.keep]
         k = len(kept)
     else:
-        order = [n for n, _ in ranking]
-        for k_try in range(1, min(int(mc.max_k), len(order)) + 1):
-            hybrid.keep_only(order[:k_try])
-            try:
-                with progress(f"mask: simulating with the top {k_try} of {len(order)} corrections"):
-                    by_k.append((k_try, evaluate(hybrid, checked, work)["val.rmse"]))
-            except TrainingDiverged:  # without the other corrections this network leaves every range
-                by_k.append((k_try, math.inf))
+        # recorded up to the first k within the tolerance, as a search one k after another would
+        for k_try, got in zip(tries, outcomes[1:]):
+            # a TrainingDiverged: without the other corrections this network leaves every range
+            by_k.append((k_try, math.inf if isinstance(got, TrainingDiverged) else got["val.rmse"]))
             if by_k[-1][1] <= (1.0 + float(mc.tolerance)) * full:
                 break
-        hybrid.keep_only(hybrid.spec.corrected)
         k = choose_k(full, by_k, float(mc.tolerance))
         kept = order[:k]
     result = None

@@ -103,11 +103,12 @@ def with_physics(u: torch.Tensor, d: torch.Tensor, linear_plus: Callable[[torch.
     return du + corr if index is None else du.index_add(-1, index, corr)
 
 
-def _network_parts(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor) -> tuple[
+def _network_parts(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[
         torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, torch.Tensor] | nn.Module], torch.Tensor]:
     """The network of ``hybrid`` split for drives over the inputs ``xs (H, S, m)`` (``p (S, n_params)``):
     the first layer's input and parameter part with its bias ``(H, S, h1)``, its state weights
-    transposed ``(n_read, h1)``, the later layers (``(bias, weightᵀ)`` or an activation) and the output gain."""
+    transposed ``(n_read, h1)``, the later layers (``(bias, weightᵀ)`` or an activation) and the output
+    gain; ``mask (S, k)``: each row's own output mask in place of the hybrid's."""
     layers = list(hybrid.net)
     first = layers[0]
     assert isinstance(first, nn.Linear)
@@ -120,7 +121,7 @@ def _network_parts(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor) -> tu
         pre = pre + (p[:, hybrid.param_idx] @ wp.T)[None]
     rest: list[tuple[torch.Tensor, torch.Tensor] | nn.Module] = [
         (m.bias, m.weight.T) if isinstance(m, nn.Linear) else m for m in layers[1:]]
-    gain = hybrid.out_scale * hybrid.out_mask
+    gain = hybrid.out_scale * (hybrid.out_mask if mask is None else mask)
     if hybrid.coefficients is not None:
         gain = gain / hybrid.equation_coefficients(p)  # (S, k)
     return pre, wu.T, rest, gain
@@ -149,7 +150,7 @@ def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: t
     return f, Drives(physics, pre)
 
 
-def drive_table(hybrid: HybridModel, p: torch.Tensor, inputs: PiecewiseLinear
+def drive_table(hybrid: HybridModel, p: torch.Tensor, inputs: PiecewiseLinear, mask: torch.Tensor | None = None
                 ) -> tuple[Callable[[torch.Tensor, torch.Tensor], torch.Tensor], PiecewiseLinear]:
     """The hybrid's right-hand side for a whole-trajectory solve, ``f(u, d) -> du/dt``, and the drive
     ``d(t)`` it takes in place of the inputs: a :class:`PiecewiseLinear` on the inputs' own knots.
@@ -161,11 +162,12 @@ def drive_table(hybrid: HybridModel, p: torch.Tensor, inputs: PiecewiseLinear
     physics and one per layer — :meth:`HybridModel.rhs`'s function to rounding, without the features,
     the normalisation or the physics' input product at every evaluation. ``p (B, n_params)`` (already
     estimated); ``u (..., B, n)`` with any leading dimensions (finite-difference Jacobians); the
-    drive's kinks are the inputs' (a solver's stops should come from the inputs). Only where
-    :func:`drivable` holds; no gradients are meant to pass (whole-trajectory evaluations)."""
+    drive's kinks are the inputs' (a solver's stops should come from the inputs); ``mask (B, k)``:
+    each row's own output mask in place of the hybrid's (several masked variants in one solve). Only
+    where :func:`drivable` holds; no gradients are meant to pass (whole-trajectory evaluations)."""
     xs = inputs.values.transpose(0, 1)  # (K, B, m): the inputs at their knots
     linear_plus, physics = physics_drive(hybrid, p, xs)
-    pre, wu_t, rest, gain = _network_parts(hybrid, p, xs)
+    pre, wu_t, rest, gain = _network_parts(hybrid, p, xs, mask)
     n = physics.shape[-1]
     table = PiecewiseLinear(inputs.knots, torch.cat([physics, pre], -1).transpose(0, 1).contiguous())
     state_idx, index = columns(hybrid)

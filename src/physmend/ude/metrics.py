@@ -10,7 +10,7 @@ the same 844 Rodas4 iterations, about a quarter less time; metrics equal to abou
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 import dataclasses
 import math
@@ -23,7 +23,7 @@ from physmend.simulate.initial import estimate_initial, has_unknown
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.drive import drivable, drive_table, table_fits
-from physmend.ude.reference import solver_options, train_mask, _val_mask, held_out_apart, simulate_with, with_stops
+from physmend.ude.reference import clocked, solver_options, train_mask, _val_mask, held_out_apart, simulate_with, with_stops
 
 
 def _pooled(err: torch.Tensor, mask: torch.Tensor) -> float:
@@ -172,3 +172,64 @@ def hybrid_states(hybrid: HybridModel, problem: Problem, batch: Batch, sim: dict
         return held_out_apart(problem, batch, solve)
     except SimulationError as exc:
         raise TrainingDiverged(f"whole-trajectory simulation of the hybrid failed: {exc}") from exc
+
+
+def evaluate_kept(hybrid: HybridModel, problem: Problem, sim: dict[str, Any], keeps: Sequence[Sequence[str]]
+                  ) -> list[dict[str, float] | TrainingDiverged]:
+    """:func:`evaluate` of ``hybrid`` with only the corrections of the states ``keeps[j]``, for each
+    ``j``: its metrics, or the :class:`TrainingDiverged` that variant raises.
+
+    Where the experiments step on a clock each (:func:`~physmend.ude.reference.clocked`), the drives
+    apply, no initial value is estimated and no experiment is a test one, every variant is simulated
+    in one solve, rows variant-major: each row takes the steps it takes alone, so each variant gets
+    the metrics its own evaluation gives (to rounding), for about the cost of one. Otherwise, or
+    where that solve fails (a variant diverges), one variant after another. ``hybrid``'s own mask is
+    left as it was.
+    """
+    batch = make_batch(problem.experiments, problem.compiled, problem.dtype)
+    together = (len(keeps) > 1 and drivable(hybrid) and clocked(sim, batch) and not has_unknown(batch)
+                and all(e.role != "test" for e in problem.experiments)
+                and table_fits(len(keeps) * batch.size, batch.inputs.knots.shape[0],
+                               len(problem.compiled.state_names) + hybrid.spec.widths[0], problem.dtype))
+    if together:
+        try:
+            y = _kept_outputs(hybrid, problem, batch, sim, keeps)
+        except SimulationError:
+            together = False
+    out: list[dict[str, float] | TrainingDiverged] = []
+    if together:
+        b = batch.size
+        for j in range(len(keeps)):
+            try:
+                out.append(metrics_of(problem, batch, y[:, j * b:(j + 1) * b]))
+            except TrainingDiverged as exc:
+                out.append(exc)
+        return out
+    mask = hybrid.out_mask
+    try:
+        for names in keeps:
+            hybrid.keep_only(list(names))
+            try:
+                out.append(evaluate(hybrid, problem, sim=sim))
+            except TrainingDiverged as exc:
+                out.append(exc)
+    finally:
+        hybrid.out_mask = mask
+    return out
+
+
+def _kept_outputs(hybrid: HybridModel, problem: Problem, batch: Batch, sim: dict[str, Any],
+                  keeps: Sequence[Sequence[str]]) -> torch.Tensor:
+    """Outputs ``(T, V·B, k)`` of the ``V`` masked variants of ``hybrid`` on ``batch`` in one solve (rows variant-major)."""
+    v, b = len(keeps), batch.size
+    rows = batch.take(torch.arange(b).repeat(v), ids=[f"{e} (top {len(keep)})" for keep in keeps for e in batch.ids])
+    corrected = hybrid.spec.corrected
+    mask = torch.tensor([[1.0 if n in keep else 0.0 for n in corrected] for keep in keeps],
+                        dtype=hybrid.out_mask.dtype).repeat_interleave(b, 0)  # (V·B, k)
+    with torch.no_grad():
+        p = hybrid.parameters_for(rows.params)
+        rhs, table = drive_table(hybrid, p, rows.inputs, mask)
+        limits = hybrid.spec.box(LEAVE_MARGIN, problem.dtype)
+        states = simulate_with(guarded(rhs, limits, rows.ids, problem.compiled.state_names),
+                               dataclasses.replace(rows, inputs=table), rows.u0, with_stops(sim, rows))
+        return problem.compiled.outputs(states, rows.inputs.at(rows.t), p[None])

@@ -93,6 +93,14 @@ def with_stops(sim: dict[str, Any], batch: Batch) -> dict[str, Any]:
     return {**sim, "options": {**sim["options"], "clocks": own_stops(batch)}}
 
 
+def clocked(sim: dict[str, Any], batch: Batch) -> bool:
+    """Whether a solve of ``batch`` with the solver options ``sim`` gives each row its own clock
+    (:func:`simulate_with`): each row then takes the steps it takes alone, and one solve of several
+    records (or of several models' rows) costs what its busiest row needs (the cargo box's two
+    records, a stack of two models: 2.0 s a checkpoint against 2.5 s solved per time grid)."""
+    return sim["method"] in CLOCK_METHODS and "clocks" not in sim["options"] and own_stops(batch) is not None
+
+
 def reference(problem: Problem, cfg: Any, *, bounded: bool = False) -> Reference:
     """The model as written simulated on every experiment of ``problem`` (no gradients).
 

@@ -13,20 +13,11 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch
-from physmend.simulate.batch import own_stops
-from physmend.simulate.core import CLOCK_METHODS
 from physmend.simulate.initial import estimate_initial
 from physmend.ude.metrics import LEAVE_MARGIN, evaluate_with, guarded, metrics_of
 from physmend.ude.outcome import TrainingDiverged
-from physmend.ude.reference import simulate_with, with_stops
+from physmend.ude.reference import clocked, simulate_with, with_stops
 from physmend.ude.stack.net import StackedNet, write_back_row
-
-
-def clocked(sim: dict[str, Any], batch: Batch) -> bool:
-    """Whether a solve of ``batch`` with the solver options ``sim`` gives each row its own clock
-    (:func:`~physmend.ude.reference.simulate_with`): one solve then costs what its busiest row needs
-    (the cargo box's two records, a stack of two models: 2.0 s a checkpoint against 2.5 s per time grid)."""
-    return sim["method"] in CLOCK_METHODS and "clocks" not in sim["options"] and own_stops(batch) is not None
 
 
 class StackEvaluation:

@@ -21,6 +21,7 @@ from physmend.symbolic import (
     choose,
     evaluate,
     fit,
+    fit_many,
     mse_r2,
 )
 from physmend.symbolic._sindy import library
@@ -93,6 +94,29 @@ def test_operon_is_deterministic_for_a_seed():
     f1 = fit(X, y, NAMES, backend="operon", units=UNITS, seed=3, options={"generations": 10})
     f2 = fit(X, y, NAMES, backend="operon", units=UNITS, seed=3, options={"generations": 10})
     assert [c.expr for c in f1.candidates] == [c.expr for c in f2.candidates]
+
+
+@pytest.mark.parametrize("backend", ["operon", "sindy"])
+def test_fronts_of_several_targets_are_each_its_own_fit(backend):
+    """fit_many gives, in order, the front fit() gives each target (operon: the searches side by
+    side in threads), and leaves the process's warning filters as it found them."""
+    import warnings
+
+    calls = []
+    for seed, law in enumerate([leakage, linear, leakage]):
+        X, y = make_data(law, n=800, seed=seed)
+        calls.append(dict(X=X, y=y, names=NAMES, backend=backend, units=UNITS, target=f"t{seed}", seed=seed,
+                          options={"generations": 15} if backend == "operon" else {}))
+    filters = list(warnings.filters)
+    together = fit_many(calls)
+    assert list(warnings.filters) == filters
+    assert [f.target for f in together] == ["t0", "t1", "t2"]
+    for call, front in zip(calls, together):
+        alone = fit(**call)
+        assert [(c.expr, c.complexity, c.mse) for c in front.candidates] == \
+               [(c.expr, c.complexity, c.mse) for c in alone.candidates]
+    with pytest.raises(SymbolicError, match="unknown"):  # a bad call is refused before any search
+        fit_many([calls[0], {**calls[1], "options": {"no_such_option": 1}}])
 
 
 @pytest.mark.parametrize(

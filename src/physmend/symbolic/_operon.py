@@ -132,6 +132,14 @@ def search(
     X: np.ndarray, y: np.ndarray, names: list[str], *, units: dict[str, str], options: dict[str, Any], seed: int
 ) -> tuple[list[tuple[sympy.Expr, int, dict[str, float], str | None]], dict[str, Any]]:
     """Run pyoperon on ``X (n, k)``, ``y (n,)``; returns ``(expr, tree length, {}, None)`` per front member and run details."""
+    return read_front(regress(X, y, names, units=units, options=options, seed=seed), names)
+
+
+def regress(X: np.ndarray, y: np.ndarray, names: list[str], *, units: dict[str, str], options: dict[str, Any],
+            seed: int) -> tuple[Any, dict[str, Any]]:
+    """The evolution alone: pyoperon's fitted ``SymbolicRegressor`` on ``X (n, k)``, ``y (n,)`` and its
+    settings. It holds no interpreter lock while it evolves, and touches no state of this process:
+    several may run side by side in threads (:func:`physmend.symbolic.fit_many`)."""
     from pyoperon.sklearn import SymbolicRegressor
 
     settings = operator_settings(options, names, units)
@@ -140,6 +148,14 @@ def search(
         reg.fit(X, y)
     except ValueError as exc:
         raise SymbolicError(f"pyoperon refused the settings {settings} ({exc})") from exc
+    return reg, settings
+
+
+def read_front(fitted: tuple[Any, dict[str, Any]], names: list[str]
+               ) -> tuple[list[tuple[sympy.Expr, int, dict[str, float], str | None]], dict[str, Any]]:
+    """:func:`search`'s result from a :func:`regress` result (in the calling thread: it changes the
+    warning filters for a moment)."""
+    reg, settings = fitted
     stand_ins = [f"x{i}" for i in range(len(names))]
     out = []
     for member in reg.pareto_front_:

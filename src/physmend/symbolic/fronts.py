@@ -35,15 +35,16 @@ def equation_fronts(problem: Any, data: RegressionData, kept: list[str], scale: 
     """A front per state of ``kept`` from the back end ``sc.backend`` (``sc.options``, ``sc.units``)
     on ``data``, widened and picked from as the module says; formulas left out for their units are
     said in one line each. ``choices``: the engineer's Pareto index per state (``symbolic.choice``)."""
-    from physmend.symbolic import choose, fit
+    from physmend.symbolic import choose, fit_many
 
     out = Fronts()
     x_names, columns, units = data.x_names, data.columns, data.units
-    for state in kept:
-        front = fit(data.X, data.y[state], x_names, backend=str(sc.backend), target=state, units=units,
-                    options=dict(sc.options or {}), seed=seed, operators=operators,
-                    target_unit=equation_unit(problem.model, state, getattr(problem, "time_unit", "s")),
-                    check_units=sc.units)
+    # every equation's search (side by side where the back end allows: fit_many), then each in turn
+    found = fit_many([dict(X=data.X, y=data.y[state], names=x_names, backend=str(sc.backend), target=state, units=units,
+                           options=dict(sc.options or {}), seed=seed, operators=operators,
+                           target_unit=equation_unit(problem.model, state, getattr(problem, "time_unit", "s")),
+                           check_units=sc.units) for state in kept])
+    for state, front in zip(kept, found):
         if front.info.get("unit_rejected"):
             print(f"{state}: {front.info['unit_rejected']} formula(s) left out, their units cannot be the equation's "
                   f"(e.g. {front.info['unit_rejected_examples'][0]})")

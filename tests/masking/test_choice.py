@@ -49,3 +49,22 @@ def test_k_is_the_smallest_within_the_tolerance_of_the_full_network_or_else_of_t
 def test_a_candidate_line_says_its_rmse_or_why_it_has_none() -> None:
     assert val_text(SimpleNamespace(val_rmse=0.012345)) == "0.01235"
     assert val_text(SourceNetwork(0.5)) == "0.5"
+
+
+@pytest.mark.parametrize("held", [True, False], ids=["test experiments", "none"])
+def test_the_retrained_line_shows_the_held_out_test_rmse(held: bool) -> None:
+    """The retrained network's test RMSE comes from its held-out simulation (training never saw the
+    test experiments, so its own metrics have none): printed where there is one, left out where not."""
+    from physmend.masking.corrections import MaskOutcome
+    from physmend.masking.report import report
+    from physmend.ude import TrainResult
+
+    trained = TrainResult(val_rmse=0.1143, metrics={"val.rmse": 0.1143}, history=[], artifacts={})
+    out = MaskOutcome(ranking=[("a", 0.5), ("b", 0.1)], by_k=[(1, 0.2)], full=0.1, k=1, kept=["a"], kept_in_order=["a"],
+                      corrected=["a", "b"], config=None, own=False, retrained=True, tried=[(["a"], trained)],
+                      winner=trained, trained=trained,
+                      held_out=TrainResult(val_rmse=0.1143, metrics={"val.rmse": 0.1143, "test.rmse": 1.3999},
+                                           history=[], artifacts={}) if held else trained)
+    line = report(out, "run", SimpleNamespace(tolerance=0.1, retrain_epochs=3)).splitlines()[-1]
+    assert line == ("Retrained with 1 output(s): validation RMSE 0.1143, test RMSE 1.4." if held
+                    else "Retrained with 1 output(s): validation RMSE 0.1143.")

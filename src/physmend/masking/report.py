@@ -57,6 +57,8 @@ def report(out: MaskOutcome, source_run_id: str, mc: Any) -> str:
     if out.trained is None and out.retrained and out.own:
         lines.append("The kept set is the source network's own: it goes on as it is (a retraining would reproduce it).")
     if out.trained is not None:
-        lines.append(f"Retrained with {out.k} output(s): validation RMSE {out.trained.val_rmse:.4g}, "
-                     f"test RMSE {out.trained.metrics.get('test.rmse', float('nan')):.4g}.")
+        # the test experiments' figures are the held-out simulation's (training never saw them)
+        metrics = (out.held_out if out.held_out is not None else out.trained).metrics
+        test = f", test RMSE {metrics['test.rmse']:.4g}" if "test.rmse" in metrics else ""
+        lines.append(f"Retrained with {out.k} output(s): validation RMSE {out.trained.val_rmse:.4g}{test}.")
     return "\n".join(lines)

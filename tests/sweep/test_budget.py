@@ -14,7 +14,7 @@ import pytest
 from physmend.cli import main
 from physmend.config import ConfigError, compose
 import physmend.sweep as sw
-from physmend.sweep.budget import BUDGET_ATTR, Budget, wall_span
+from physmend.sweep.budget import BUDGET_ATTR, Budget, at_once, wall_span
 
 TINY = [
     "model=oscillator", "data=oscillator", "train.epochs=2", "train.eval_every=2", "train.step=0.1",
@@ -34,11 +34,26 @@ def test_as_many_trials_as_fit_within_the_bounds() -> None:
     assert budget.trials(0.0, 2) == 16  # too fast to measure: the most
     assert budget.trials(5.0, 0) == 2
     stored = budget.decision(30.0, 2)
-    assert stored == {"budget": 60.0, "min": 2, "max": 16, "trials": 4, "spent": 30.0, "measured": 2}
+    assert stored == {"budget": 60.0, "min": 2, "max": 16, "trials": 4, "spent": 30.0, "measured": 2, "at_once": 1}
     assert budget.matches(stored) and not Budget(61.0, 2, 16).matches(stored) and not budget.matches(None)
     line = budget.describe(stored)
     assert "budget 60 s: the first 2 trials took 30.0 s (15.0 s each), so 4 trials in all" in line
     assert "sweep.n_trials=4 sweep.budget=null" in line
+
+
+def test_trials_that_ran_side_by_side_come_in_rounds() -> None:
+    """Two at a time (two workers, or a stack of two): one more trial costs a whole round."""
+    budget = Budget(60.0, 2, 16)
+    assert budget.trials(40.0, 2, at_once=2) == 2  # a round took 40 s, 20 s left: no round fits (one at a time: 3)
+    assert budget.trials(40.0, 2) == 3
+    assert budget.trials(20.0, 2, at_once=2) == 6  # 20 s a round, 40 s left: two rounds of two
+    assert budget.trials(25.0, 2, at_once=2) == 4  # 35 s left: one round
+    assert budget.trials(10.0, 4, at_once=2) == 16  # 5 s a round: many; at most 16
+    assert budget.trials(40.0, 2, at_once=5) == budget.trials(40.0, 2, at_once=2)  # never more at once than measured
+    stored = budget.decision(40.0, 2, at_once=2)
+    assert stored["trials"] == 2 and stored["at_once"] == 2 and budget.matches(stored)
+    assert "took 40.0 s (20.0 s each, 2 at a time), so 2 trials in all (the budget allows no more" in budget.describe(stored)
+    assert "at a time" not in budget.describe(budget.decision(40.0, 2))
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -80,6 +95,12 @@ def test_wall_span_is_first_start_to_last_end_of_real_trials() -> None:
     assert wall_span([frozen(0, 0.0, 40.0), frozen(1, 0.5, 41.0)]) == pytest.approx(41.0)
     assert wall_span([frozen(0, 0.0, 10.0), frozen(1, 10.0, 25.0)]) == pytest.approx(25.0)
     assert wall_span([]) == 0.0
+    # how many ran at once: summed durations over the span, to the nearest whole number
+    assert at_once([frozen(0, 0.0, 40.0), frozen(1, 0.5, 41.0)]) == 2
+    assert at_once([frozen(0, 0.0, 36.0), frozen(1, 7.0, 45.0)]) == 2  # a worker that started later
+    assert at_once([frozen(0, 0.0, 10.0), frozen(1, 10.0, 25.0)]) == 1
+    assert at_once([frozen(0, 0.0, 10.0), frozen(1, 1.0, 11.0), frozen(2, 11.0, 21.0), frozen(3, 11.5, 21.5)]) == 2
+    assert at_once([]) == 1
 
 
 def _sweep(project: Path, *extra: str) -> int:

@@ -11,13 +11,13 @@ Where ``fork`` is not available the retrainings run one after another.
 from __future__ import annotations
 
 import multiprocessing
-import os
 import pickle
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from omegaconf import OmegaConf
 
+from physmend.cpus import usable_cpus
 from physmend.settings import TrainSettings
 
 #: (configuration, problem, trainer, equation sets) of the retrainings a forked child runs
@@ -27,7 +27,7 @@ _JOB: tuple[Any, Any, Callable[..., Any], list[list[str]]] | None = None
 def workers(setting: Any) -> int:
     """``mask.workers``: a whole number ≥ 1, or ``auto`` (the CPUs this process may use)."""
     if str(setting) == "auto":
-        return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+        return usable_cpus()
     return max(1, int(setting))
 
 

@@ -64,6 +64,10 @@ def _auto(value: Any) -> Any:
     return AUTO if value is None or value == AUTO else _real(value)
 
 
+def _auto_whole(value: Any) -> Any:
+    return AUTO if value is None or value == AUTO else _whole(value)
+
+
 def _tuple(value: Any) -> Any:
     return tuple(value) if isinstance(value, list) else value
 
@@ -75,6 +79,9 @@ Number = Annotated[float, BeforeValidator(_real), Strict(), AllowInfNan(False), 
 #: ``auto`` (or null) or a finite number > 0
 Auto = Annotated[Union[Literal["auto"], Annotated[float, Strict(), AllowInfNan(False), Gt(0)]],
                  BeforeValidator(_auto), Kind("auto")]
+#: ``auto`` (or null) or a whole number ≥ 1 (a count of processes)
+AutoCount = Annotated[Union[Literal["auto"], Annotated[int, Strict(), Ge(1)]], BeforeValidator(_auto_whole),
+                      Kind("word", words="'auto' or a whole number ≥ 1")]
 #: a word (text)
 Word = Annotated[str, Strict(), Kind("word")]
 #: true or false

@@ -12,7 +12,7 @@ from annotated_types import Ge, Gt, Le
 from pydantic import StringConstraints
 from pydantic.dataclasses import dataclass
 
-from physmend.settings.rules import STRICT, Auto, Flag, Free, Group, Kind, Names, Number, Patterns, Whole, Word
+from physmend.settings.rules import STRICT, Auto, AutoCount, Flag, Free, Group, Kind, Names, Number, Patterns, Whole, Word
 
 #: ``auto``, ``cpu``, ``cuda`` or ``cuda:N`` (whether this machine has the device is checked where the
 #: problem is loaded, :func:`physmend.device.resolve_device`)
@@ -150,6 +150,7 @@ class DiscoverSettings(Group):
     space: Word
     group: Count
     group_shapes: Flag
+    workers: AutoCount  # auto: the CPUs this process may use, at most n_trials
 
 
 @dataclass(frozen=True, config=STRICT)

@@ -14,12 +14,48 @@ from typing import Any
 from omegaconf import OmegaConf
 
 
-SWEEP_KEYS = ("n_trials", "space", "group", "group_shapes", "budget", "max_trials")
+SWEEP_KEYS = ("n_trials", "space", "group", "group_shapes", "budget", "max_trials", "workers")
 """``discover.<key>`` sets ``sweep.<key>`` unless the command line gives ``sweep.<key>`` itself."""
 
 
 def _key(override: str) -> str:
     return override.split("=", 1)[0].lstrip("+~")
+
+
+def _workers(setting: str | int, n_trials: int) -> int:
+    """``discover.workers``: a count as given, or ``auto``: the CPUs this process may use, at most
+    ``n_trials`` (the first trials; more processes would find nothing to run before the budget's decision)."""
+    from physmend.cpus import usable_cpus
+
+    return int(setting) if setting != "auto" else max(1, min(usable_cpus(), n_trials))
+
+
+def sweep_settings(cfg: Any, overrides: Sequence[str] | None) -> Any:
+    """A copy of ``cfg`` whose ``sweep.*`` keys are discover's (:data:`SWEEP_KEYS`) where the command
+    line (``overrides``) does not give them; ``sweep.workers`` resolved to a count (:func:`run`).
+
+    Raises:
+        ConfigError: a ``discover.*`` setting breaks its rule (checked before any stage writes a run).
+    """
+    from physmend.config import ConfigError
+    from physmend.settings import SettingError, group_settings
+
+    try:
+        dc = group_settings(cfg, "discover")
+    except SettingError as exc:
+        raise ConfigError(str(exc)) from None
+    given = {_key(o) for o in overrides or ()}
+    cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    chosen = {"n_trials": dc.n_trials, "space": dc.space, "group": dc.group, "group_shapes": dc.group_shapes,
+              "budget": dc.budget, "max_trials": dc.max_trials}
+    if "sweep.n_trials" in given and "sweep.budget" not in given:
+        chosen["budget"] = None  # the user's count of trials is the count, not a minimum under discover's budget
+    for key, value in chosen.items():
+        if f"sweep.{key}" not in given:
+            cfg.sweep[key] = value
+    if "sweep.workers" not in given:
+        cfg.sweep.workers = 1 if overrides is None else _workers(dc.workers, int(cfg.sweep.n_trials))
+    return cfg
 
 
 def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] | None = None,
@@ -30,25 +66,17 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     settings win: a ``sweep.*`` key on the command line is kept (``discover.*`` fills the rest; a
     ``sweep.n_trials`` given without ``sweep.budget`` is the number of trials, not a minimum), and
     a key the search space would search is left out of the search, said in one line.
+
+    ``discover.workers: auto`` runs the sweep's first trials side by side, one process per CPU this
+    process may use, at most ``sweep.n_trials`` of them. Without ``overrides`` (a direct call, not
+    the command line nor :func:`physmend.discover`) the worker processes could not compose the
+    configuration, so one process runs the trials in turn; with ``sweep.group: 1`` each trial
+    trains alone either way, so the trials are the same.
     """
-    from physmend.config import ConfigError
-    from physmend.settings import SettingError, group_settings
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
     from physmend.sweep import hydra_value
 
-    try:  # checked before any stage writes a run
-        dc = group_settings(cfg, "discover")
-    except SettingError as exc:
-        raise ConfigError(str(exc)) from None
-    given = {_key(o) for o in overrides or ()}
-    cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    chosen = {"n_trials": dc.n_trials, "space": dc.space, "group": dc.group, "group_shapes": dc.group_shapes,
-              "budget": dc.budget, "max_trials": dc.max_trials}
-    if "sweep.n_trials" in given and "sweep.budget" not in given:
-        chosen["budget"] = None  # the user's count of trials is the count, not a minimum under discover's budget
-    for key in SWEEP_KEYS:
-        if f"sweep.{key}" not in given:
-            cfg.sweep[key] = chosen[key]
+    cfg = sweep_settings(cfg, overrides)
     ids: list[tuple[str, str]] = []
     seconds: list[tuple[str, float]] = []
     banner = "\n" + "=" * 78 + "\n== physmend discover: {} \n" + "=" * 78
@@ -66,6 +94,7 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
     stage(2, "sweep")
     sweep_overrides = None
+    given = {_key(o) for o in overrides or ()}
     if overrides is not None:
         sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
                                          for k in SWEEP_KEYS if f"sweep.{k}" not in given)]

@@ -2,14 +2,18 @@
 
 With ``sweep.budget`` (seconds of wall time for the sweep's trials: a compute budget, not a
 physical time of the model), the sweep first runs ``sweep.n_trials`` trials (the minimum), then
-decides once how many trials the study has in the end:
+decides once how many trials the study has in the end. Trials run ``c`` at a time (a stack of
+``sweep.group`` trials trained together, ``sweep.workers`` processes side by side), so more trials
+come in rounds of ``c``, each costing what ``c`` of the first ones did:
 
-    total = clamp(done + floor((budget - spent) / (spent / done)), n_trials, max_trials)
+    total = clamp(done + c · floor((budget - spent) / (c · spent / done)), n_trials, max_trials)
 
 where ``done`` trials reached a verdict and ``spent`` is their wall-time span in the study storage
-(first start to last end: trials trained together as one stack overlap, so a stack of two costs
-what it took, not twice that). Where a trial takes seconds the sweep searches more architectures;
-where the minimum alone takes longer than the budget it stays at the minimum.
+(first start to last end: trials that ran together overlap, so two side by side cost what they
+took, not twice that). ``c`` is measured, not configured: the trials' summed durations over their
+span, to the nearest whole number (1 where they ran one after another; then the rule is
+``done + floor((budget - spent) / (spent / done))``). Where a trial takes seconds the sweep searches
+more architectures; where the minimum alone takes longer than the budget it stays at the minimum.
 
 The decision is made once per study and stored with it (:data:`BUDGET_ATTR`): a resumed sweep,
 and every worker of a study, use the same count. Trials themselves are deterministic given the
@@ -29,7 +33,7 @@ from typing import Any
 
 BUDGET_ATTR = "physmend_budget"
 """Study user attribute: the budget's decision, ``{"budget": s, "min": n, "max": n, "trials": n,
-"spent": s, "measured": n}``."""
+"spent": s, "measured": n, "at_once": c}``."""
 
 
 @dataclass(frozen=True)
@@ -47,21 +51,23 @@ class Budget:
             raise ValueError(f"`1 <= min_trials <= max_trials` must hold, but got (min_trials={self.min_trials}, "
                              f"max_trials={self.max_trials})")
 
-    def trials(self, spent: float, done: int) -> int:
-        """The study's total number of trials, after ``done`` trials took ``spent`` seconds of wall time:
-        as many more as fit in what is left of the budget at ``spent / done`` seconds each, within
-        ``[min_trials, max_trials]``."""
+    def trials(self, spent: float, done: int, at_once: int = 1) -> int:
+        """The study's total number of trials, after ``done`` trials took ``spent`` seconds of wall time
+        running ``at_once`` at a time: as many more rounds of ``at_once`` as fit in what is left of the
+        budget at ``at_once · spent / done`` seconds a round, within ``[min_trials, max_trials]``."""
         if done <= 0:
             return self.min_trials
-        each = max(spent, 0.0) / done
+        c = max(1, min(int(at_once), done))
+        round_cost = c * max(spent, 0.0) / done
         left = self.seconds - max(spent, 0.0)
-        more = self.max_trials if each <= 0 else max(0, math.floor(left / each))
+        more = self.max_trials if round_cost <= 0 else c * max(0, math.floor(left / round_cost))
         return max(self.min_trials, min(self.max_trials, done + more))
 
-    def decision(self, spent: float, done: int) -> dict[str, Any]:
+    def decision(self, spent: float, done: int, at_once: int = 1) -> dict[str, Any]:
         """What is stored with the study (:data:`BUDGET_ATTR`)."""
         return {"budget": self.seconds, "min": self.min_trials, "max": self.max_trials,
-                "trials": self.trials(spent, done), "spent": round(float(spent), 3), "measured": int(done)}
+                "trials": self.trials(spent, done, at_once), "spent": round(float(spent), 3), "measured": int(done),
+                "at_once": max(1, min(int(at_once), max(int(done), 1)))}
 
     def matches(self, stored: Any) -> bool:
         """Whether a stored decision was made for this budget (same seconds and bounds)."""
@@ -72,10 +78,12 @@ class Budget:
         """One line: the decision and how it was reached."""
         done, spent, n = stored["measured"], stored["spent"], stored["trials"]
         each = spent / done if done else float("nan")
+        c = stored.get("at_once", 1)
+        pace = f", {c} at a time" if isinstance(c, int) and c > 1 else ""
         why = ("the budget allows no more" if n == self.min_trials and n < self.max_trials
                else "the most allowed (sweep.max_trials)" if n == self.max_trials else "as many as fit")
         return (f"budget {self.seconds:g} s: the first {done} trial{'s' if done != 1 else ''} took {spent:.1f} s "
-                f"({each:.1f} s each), so {n} trial{'s' if n != 1 else ''} in all ({why}; at least {self.min_trials}, at most "
+                f"({each:.1f} s each{pace}), so {n} trial{'s' if n != 1 else ''} in all ({why}; at least {self.min_trials}, at most "
                 f"{self.max_trials}); the count depends on this machine's speed — `sweep.n_trials={n} sweep.budget=null` "
                 f"repeats it")
 
@@ -88,3 +96,14 @@ def wall_span(trials: list[Any]) -> float:
     if not starts or not ends:
         return 0.0
     return max(0.0, (max(ends) - min(starts)).total_seconds())
+
+
+def at_once(trials: list[Any]) -> int:
+    """How many of the finished ``trials`` ran at a time: their summed durations over their
+    :func:`wall_span`, to the nearest whole number (1 where they ran one after another or cannot tell)."""
+    span = wall_span(trials)
+    spans = [(t.datetime_complete - t.datetime_start).total_seconds() for t in trials
+             if isinstance(t.datetime_start, datetime) and isinstance(t.datetime_complete, datetime)]
+    if span <= 0 or not spans:
+        return 1
+    return max(1, min(len(spans), math.floor(sum(max(0.0, s) for s in spans) / span + 0.5)))

@@ -62,7 +62,7 @@ class Sweep(StackedTrials):
         """With ``sweep.budget``: once ``sweep.n_trials`` trials reached a verdict, decide how many the
         study has in the end (:mod:`physmend.sweep.budget`), once per study (stored with it; a
         resumed sweep and other workers use the stored decision)."""
-        from physmend.sweep.budget import BUDGET_ATTR, wall_span
+        from physmend.sweep.budget import BUDGET_ATTR, at_once, wall_span
         from physmend.sweep.storage import _uncounted
 
         budget = self.settings.budgeted
@@ -74,7 +74,7 @@ class Sweep(StackedTrials):
             if len(finished) < budget.min_trials:
                 return
             finished = sorted(finished, key=lambda t: t.number)[: budget.min_trials]
-            stored = budget.decision(wall_span(finished), len(finished))
+            stored = budget.decision(wall_span(finished), len(finished), at_once(finished))
             self.study.set_user_attr(BUDGET_ATTR, stored)
             stored = self.study.user_attrs.get(BUDGET_ATTR, stored)  # another worker may have decided first
         self.target = int(stored["trials"])

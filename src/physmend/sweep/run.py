@@ -5,6 +5,7 @@ waits for, the summary, and the error when no trial finished).
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -25,7 +26,7 @@ from physmend.sweep.settings import Settings
 from physmend.sweep.space import load_space
 from physmend.sweep.summary import summary
 from physmend.sweep.storage import _retry, _study, default_study_name, open_storage, study_fingerprint
-from physmend.sweep.workers import _join_workers, _start_workers
+from physmend.sweep.workers import GIVEN_WINS_ENV, _join_workers, _start_workers
 
 
 class NoTrialCompleted(PhysmendError, RuntimeError):
@@ -58,6 +59,7 @@ def run_sweep(
     from physmend.tracking import get_run, open_store
 
     settings = Settings.from_cfg(cfg.sweep)
+    given_wins = given_wins or os.environ.get(GIVEN_WINS_ENV) == "1"  # a worker of such a sweep (workers.py)
     if settings.workers > 1 and overrides is None:
         raise ConfigError(f"sweep.workers={settings.workers} starts worker processes from the command line "
                           "(physmend sweep … sweep.workers=N); from Python, start several processes with the same "
@@ -84,7 +86,7 @@ def run_sweep(
     tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
     parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
     configs = TrialConfigs(cfg, problem, overrides, config_dir)
-    helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir)
+    helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir, given_wins)
     return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
 
 

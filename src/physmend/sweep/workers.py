@@ -106,7 +106,13 @@ class Heartbeat:
         self._thread.join()
 
 
-def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[str], config_dir: str | Path | None) -> list[Any]:
+GIVEN_WINS_ENV = "PHYSMEND_SWEEP_GIVEN_WINS"
+"""Set to ``1`` in the environment of the worker processes of a sweep whose command-line keys win
+over its search space (``physmend discover``): they leave the same keys out of the search."""
+
+
+def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[str], config_dir: str | Path | None,
+                   given_wins: bool = False) -> list[Any]:
     """``count`` more ``physmend sweep`` processes on the same study (one torch thread each), started
     after this one has created the study and its parent run."""
     if count < 1:
@@ -114,7 +120,7 @@ def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[st
     cmd = [sys.executable, "-m", "physmend.cli", "sweep", *([source_run_id] if source_run_id else []),
            *(["--config-dir", str(config_dir)] if config_dir is not None else []),
            *overrides, "sweep.workers=1", "sweep.progress=false"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", GIVEN_WINS_ENV: "1" if given_wins else "0"}
     return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(count)]
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -12,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from physmend.cpus import usable_cpus
 from physmend.symbolic._errors import BackendUnavailable, SymbolicError
 from physmend.modeling.evaluate import display, evaluate, mse_r2
 from physmend.modeling.units import mismatch
@@ -163,7 +163,7 @@ def fit_many(calls: Sequence[Mapping[str, Any]]) -> list[ParetoFront]:
     """
     jobs = [_prepare(**dict(c)) for c in calls]
     regress = [getattr(job.module, "regress", None) for job in jobs]
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cpus = usable_cpus()
     if len(jobs) < 2 or cpus < 2 or any(r is None for r in regress):
         return [_searched(job) for job in jobs]
 

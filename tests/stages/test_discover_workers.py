@@ -1,0 +1,63 @@
+"""``physmend discover`` runs its sweep's first trials side by side (``discover.workers``, one trial
+per process, ``discover.group: 1``): each trial is the one a single process trains, a key the
+user gives is left out of the search in every process, and the budget counts rounds of trials
+that ran at once (tests/sweep/test_budget.py). Real training, real Optuna and MLflow sqlite stores
+in a temporary folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import optuna
+import pytest
+
+from physmend.cli import main
+from physmend.config import compose
+from physmend.cpus import usable_cpus
+from physmend.stages.discover import _workers, sweep_settings
+from physmend.sweep.storage import WORKER_ATTR
+
+TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=20",
+        "train.eval_every=10", "simulate.rtol=1e-6", "simulate.atol=1e-7", "ude.depth=1", "sweep.figures=false",
+        "sweep.progress=false"]
+
+
+def test_auto_is_the_cpus_at_most_the_first_trials() -> None:
+    assert _workers("auto", 2) == min(usable_cpus(), 2)
+    assert _workers("auto", 1) == 1  # one trial: one process
+    assert _workers(3, 2) == 3  # a count as given
+
+
+def test_discover_sets_the_sweep_s_workers_unless_the_command_line_does() -> None:
+    cfg = sweep_settings(compose([]), [])
+    assert cfg.sweep.group == 1 and cfg.sweep.workers == min(usable_cpus(), cfg.sweep.n_trials)
+    assert sweep_settings(compose([]), None).sweep.workers == 1  # a direct call: no command line to start workers
+    assert sweep_settings(compose(["sweep.workers=3"]), ["sweep.workers=3"]).sweep.workers == 3
+    assert sweep_settings(compose(["discover.workers=1"]), ["discover.workers=1"]).sweep.workers == 1
+    assert sweep_settings(compose(["sweep.n_trials=1"]), ["sweep.n_trials=1"]).sweep.workers == 1  # one trial
+
+
+@pytest.mark.slow
+def test_two_workers_train_the_trials_one_process_trains(
+        user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """discover's sweep (``given_wins``) in two processes and in one: the same two trials, the same
+    values; ``ude.width`` given on the command line is searched by neither process (a worker that
+    searched it would refuse the command line and end with an error)."""
+    from physmend.stages import sweep
+
+    monkeypatch.chdir(user_project)
+    conf = user_project / "my_conf"
+    values = {}
+    for workers in (2, 1):
+        overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.group=1", f"sweep.workers={workers}",
+                     f"sweep.study_name=w{workers}"]
+        sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf, given_wins=True)
+        out = capsys.readouterr()
+        assert "ended with exit status" not in out.err  # no worker process failed
+        assert "ude.width given on the command line" in out.out
+        trials = optuna.load_study(study_name=f"w{workers}", storage=f"sqlite:///{user_project / 'optuna.db'}").trials
+        assert [t.state.name for t in trials] == ["COMPLETE", "COMPLETE"]
+        assert all("ude.width" not in t.params for t in trials)
+        assert len({t.user_attrs[WORKER_ATTR]["id"] for t in trials}) == workers  # each process ran one trial
+        values[workers] = [t.value for t in trials]
+    assert values[2] == pytest.approx(values[1], rel=1e-9)  # the same trials, trained alone either way

@@ -42,8 +42,10 @@ def test_two_workers_train_the_trials_one_process_trains(
         user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     """discover's sweep (``given_wins``) in two processes and in one: the same two trials, the same
     values; ``ude.width`` given on the command line is searched by neither process (a worker that
-    searched it would refuse the command line and end with an error)."""
+    searched it would refuse the command line and end with an error); the second process is the
+    one started before the sweep (:mod:`physmend.sweep.standby`)."""
     from physmend.stages import sweep
+    from physmend.sweep import standby
 
     monkeypatch.chdir(user_project)
     conf = user_project / "my_conf"
@@ -51,7 +53,12 @@ def test_two_workers_train_the_trials_one_process_trains(
     for workers in (2, 1):
         overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.group=1", f"sweep.workers={workers}",
                      f"sweep.study_name=w{workers}"]
-        sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf, given_wins=True)
+        early = standby.start(workers - 1)
+        try:
+            sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
+                      given_wins=True, standby=early)
+        finally:
+            standby.release(early)
         out = capsys.readouterr()
         assert "ended with exit status" not in out.err  # no worker process failed
         assert "ude.width given on the command line" in out.out
@@ -59,5 +66,31 @@ def test_two_workers_train_the_trials_one_process_trains(
         assert [t.state.name for t in trials] == ["COMPLETE", "COMPLETE"]
         assert all("ude.width" not in t.params for t in trials)
         assert len({t.user_attrs[WORKER_ATTR]["id"] for t in trials}) == workers  # each process ran one trial
+        assert {p.pid for p in early} <= {t.user_attrs[WORKER_ATTR]["pid"] for t in trials}
         values[workers] = [t.value for t in trials]
     assert values[2] == pytest.approx(values[1], rel=1e-9)  # the same trials, trained alone either way
+
+
+def test_standby_processes_not_needed_are_ended_and_dead_ones_replaced(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]) -> None:
+    """A standby process runs the command line it is handed; one never handed any is ended by
+    ``release``; one that ended before its turn is passed over and a new process started instead."""
+    from physmend.sweep import standby
+    from physmend.sweep.workers import _start_workers
+
+    monkeypatch.chdir(tmp_path)
+    ready = standby.start(1)
+    try:
+        proc = standby.hand(ready[0], ["--version"], {})
+        assert proc is ready[0] and proc.wait(timeout=120) == 0  # ran `physmend --version`
+    finally:
+        standby.release(ready)
+    unused = standby.start(1)
+    standby.release(unused)
+    assert unused[0].returncode is not None  # ended, having run nothing
+    assert standby.hand(unused[0], ["--version"], {}) is None  # takes no command line any more
+    started = _start_workers(1, None, ["sweep.n_trials=0"], None, standby=unused)
+    assert len(started) == 1 and started[0] is not unused[0]  # a new process in its place
+    assert started[0].wait(timeout=120) == 2  # which refuses the bad setting, as `physmend sweep` does
+    assert "sweep.n_trials must be" in capfd.readouterr().err
+    assert not list(tmp_path.iterdir())  # nothing written

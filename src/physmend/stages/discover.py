@@ -74,7 +74,7 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     trains alone either way, so the trials are the same.
     """
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
-    from physmend.sweep import hydra_value
+    from physmend.sweep import hydra_value, standby
 
     cfg = sweep_settings(cfg, overrides)
     ids: list[tuple[str, str]] = []
@@ -90,15 +90,21 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
         clock = now
         print(banner.format(f"{number}/6 {name}"))
 
-    stage(1, "diagnose")
-    ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
-    stage(2, "sweep")
-    sweep_overrides = None
-    given = {_key(o) for o in overrides or ()}
-    if overrides is not None:
-        sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
-                                         for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
-    sweep_id = sweep.run(cfg, ids[-1][1], overrides=sweep_overrides, config_dir=config_dir, given_wins=True)
+    # the sweep's extra workers import while diagnose runs (physmend.sweep.standby)
+    early = standby.start(int(cfg.sweep.workers) - 1) if overrides is not None else []
+    try:
+        stage(1, "diagnose")
+        ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
+        stage(2, "sweep")
+        sweep_overrides = None
+        given = {_key(o) for o in overrides or ()}
+        if overrides is not None:
+            sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
+                                             for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
+        sweep_id = sweep.run(cfg, ids[-1][1], overrides=sweep_overrides, config_dir=config_dir, given_wins=True,
+                             standby=early)
+    finally:
+        standby.release(early)
     ids.append(("sweep", sweep_id))
     stage(3, "mask")
     ids.append(("mask", mask.run(cfg, None)))  # the sweep's selection

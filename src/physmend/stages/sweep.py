@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig
 
@@ -21,10 +22,11 @@ def run(
     overrides: Sequence[str] | None = None,
     config_dir: str | Path | None = None,
     given_wins: bool = False,
+    standby: Sequence[Any] = (),
 ) -> str:
     """Run (or resume, or join as a worker) the sweep configured by ``cfg.sweep``; returns the parent run ID.
 
-    :func:`physmend.sweep.run_sweep` does it all: what ``overrides``, ``config_dir`` and ``given_wins``
-    mean, what is checked before any run is written, restarts, and Ctrl-C.
+    :func:`physmend.sweep.run_sweep` does it all: what ``overrides``, ``config_dir``, ``given_wins`` and
+    ``standby`` mean, what is checked before any run is written, restarts, and Ctrl-C.
     """
-    return run_sweep(cfg, source_run_id, overrides=overrides, config_dir=config_dir, given_wins=given_wins)
+    return run_sweep(cfg, source_run_id, overrides=overrides, config_dir=config_dir, given_wins=given_wins, standby=standby)

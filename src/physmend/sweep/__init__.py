@@ -54,6 +54,7 @@ Modules (nothing here imports :mod:`physmend.stages`)
     ``configs``   each trial's composed configuration and problem
     ``storage``   the Optuna storage and study: open, fingerprint, tally
     ``workers``   worker processes, identity, heartbeats, stale trials
+    ``standby``   worker processes started early (importing) that wait for their command line
     ``report``    per-epoch reporter, logged results, progress lines
     ``outcome``   how one trial ended
     ``child``     a trial's child run: opened, tagged on a restart, marked FAIL or KILLED

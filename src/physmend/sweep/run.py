@@ -40,6 +40,7 @@ def run_sweep(
     overrides: Sequence[str] | None = None,
     config_dir: str | Path | None = None,
     given_wins: bool = False,
+    standby: Sequence[Any] = (),
 ) -> str:
     """Run (or resume, or join as a worker) the sweep configured by ``cfg.sweep``; returns the parent run ID.
 
@@ -47,7 +48,8 @@ def run_sweep(
     trial's config is composed from them plus the trial's values. Without them (a call from
     Python), the trial's values are patched into a copy of ``cfg``. A key both given in ``overrides``
     and searched by the space is an error, or with ``given_wins`` (``physmend discover``, whose user did
-    not pick the space) no longer searched, said in one line.
+    not pick the space) no longer searched, said in one line. ``standby``: processes started early
+    (:mod:`physmend.sweep.standby`) that become the extra workers; the caller ends those not used.
 
     Everything the user gave (space, settings, model, data, source run) is checked before any run
     is written. A diverging trial is restarted (``sweep.restarts``, :mod:`physmend.sweep.restart`), and
@@ -86,7 +88,7 @@ def run_sweep(
     tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
     parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
     configs = TrialConfigs(cfg, problem, overrides, config_dir)
-    helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir, given_wins)
+    helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir, given_wins, standby)
     return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
 
 

@@ -112,16 +112,25 @@ over its search space (``physmend discover``): they leave the same keys out of t
 
 
 def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[str], config_dir: str | Path | None,
-                   given_wins: bool = False) -> list[Any]:
+                   given_wins: bool = False, standby: Sequence[Any] = ()) -> list[Any]:
     """``count`` more ``physmend sweep`` processes on the same study (one torch thread each), started
-    after this one has created the study and its parent run."""
+    after this one has created the study and its parent run: the ``standby`` processes first
+    (:mod:`physmend.sweep.standby`, already importing), new ones for the rest."""
     if count < 1:
         return []
-    cmd = [sys.executable, "-m", "physmend.cli", "sweep", *([source_run_id] if source_run_id else []),
-           *(["--config-dir", str(config_dir)] if config_dir is not None else []),
-           *overrides, "sweep.workers=1", "sweep.progress=false"]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", GIVEN_WINS_ENV: "1" if given_wins else "0"}
-    return [subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL) for _ in range(count)]
+    args = ["sweep", *([source_run_id] if source_run_id else []),
+            *(["--config-dir", str(config_dir)] if config_dir is not None else []),
+            *overrides, "sweep.workers=1", "sweep.progress=false"]
+    ours = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", GIVEN_WINS_ENV: "1" if given_wins else "0"}
+    from physmend.sweep import standby as waiting
+
+    ready: list[Any] = []
+    for proc in standby:
+        if len(ready) < count and waiting.hand(proc, args, ours) is not None:
+            ready.append(proc)
+    env = {**os.environ, **ours}
+    return ready + [subprocess.Popen([sys.executable, "-m", "physmend.cli", *args], env=env, stdout=subprocess.DEVNULL)
+                    for _ in range(count - len(ready))]
 
 
 def _join_workers(helpers: list[Any]) -> None:

@@ -40,19 +40,19 @@ def test_discover_sets_the_sweep_s_workers_unless_the_command_line_does() -> Non
 @pytest.mark.slow
 def test_two_workers_train_the_trials_one_process_trains(
         user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
-    """discover's sweep (``given_wins``) in two processes and in one: the same two trials, the same
-    values; ``ude.width`` given on the command line is searched by neither process (a worker that
-    searched it would refuse the command line and end with an error); the second process is the
-    one started before the sweep (:mod:`physmend.sweep.standby`)."""
+    """discover's sweep (``given_wins``, a budget) in two processes and in one: the same two trials, the
+    same values, and the trials a stack of two would train; ``ude.width`` given on the command line
+    is searched by no process (a worker that searched it would refuse the command line and end with
+    an error); the second process is the one started before the sweep (:mod:`physmend.sweep.standby`)."""
     from physmend.stages import sweep
     from physmend.sweep import standby
 
     monkeypatch.chdir(user_project)
     conf = user_project / "my_conf"
-    values = {}
+    values, params = {}, {}
     for workers in (2, 1):
-        overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.group=1", f"sweep.workers={workers}",
-                     f"sweep.study_name=w{workers}"]
+        overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
+                     "sweep.group=1", f"sweep.workers={workers}", f"sweep.study_name=w{workers}"]
         early = standby.start(workers - 1)
         try:
             sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
@@ -68,7 +68,15 @@ def test_two_workers_train_the_trials_one_process_trains(
         assert len({t.user_attrs[WORKER_ATTR]["id"] for t in trials}) == workers  # each process ran one trial
         assert {p.pid for p in early} <= {t.user_attrs[WORKER_ATTR]["pid"] for t in trials}
         values[workers] = [t.value for t in trials]
+        params[workers] = [t.params for t in trials]
+    assert params[2] == params[1] and params[1][0] != params[1][1]
     assert values[2] == pytest.approx(values[1], rel=1e-9)  # the same trials, trained alone either way
+    # the trials a stack of two proposes (as discover's sweep did before its trials ran side by side)
+    overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
+                 "sweep.group=2", "sweep.group_shapes=false", "sweep.workers=1", "sweep.study_name=stack"]
+    sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf, given_wins=True)
+    stacked = optuna.load_study(study_name="stack", storage=f"sqlite:///{user_project / 'optuna.db'}").trials
+    assert [t.params for t in stacked] == params[1]
 
 
 def test_standby_processes_not_needed_are_ended_and_dead_ones_replaced(

@@ -193,14 +193,24 @@ def tally(trials: Sequence[Any]) -> Tally:
 
 
 def _study(storage: Any, name: str, settings: Settings, space: SearchSpace, fingerprint: dict[str, Any]) -> tuple[Any, bool]:
-    """Create the study (recording what it was started with, enqueuing ``first_trials``) or load and check it."""
+    """Create the study (recording what it was started with, enqueuing ``first_trials``) or load and check it.
+
+    A budgeted sweep of single trials (``sweep.budget``, ``sweep.group: 1``) enqueues its whole
+    minimum instead, proposed together as one group of ``sweep.n_trials`` would be
+    (:func:`physmend.sweep.group.proposed_together`): the trials the budget measures are then the
+    same however many workers run them and whichever asks first, and the same as a stack of them."""
     import optuna
 
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study, created = _retry(lambda: _open_study(storage, name, settings))
     if created:
         study.set_user_attr(CONFIG_ATTR, fingerprint)
-        for values in space.first_trials:
+        first: list[dict[str, Any]] = list(space.first_trials)
+        if settings.budgeted is not None and settings.group == 1:
+            from physmend.sweep.group import proposed_together
+
+            first = proposed_together(space, settings, settings.n_trials)
+        for values in first:
             study.enqueue_trial(values, skip_if_exists=True)
     else:
         check_fingerprint(name, study.user_attrs.get(CONFIG_ATTR), fingerprint)

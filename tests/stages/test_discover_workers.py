@@ -102,3 +102,33 @@ def test_standby_processes_not_needed_are_ended_and_dead_ones_replaced(
     assert started[0].wait(timeout=120) == 2  # which refuses the bad setting, as `physmend sweep` does
     assert "sweep.n_trials must be" in capfd.readouterr().err
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_a_budgeted_sweep_of_single_trials_enqueues_its_minimum_proposed_together(tmp_path: Path) -> None:
+    """The study of a budgeted sweep with ``sweep.group: 1`` starts with its minimum enqueued, each
+    trial's every value fixed: the first of ``first_trials`` as written plus what the sampler drew,
+    then the sampler's proposals; every one of ``first_trials`` is kept where there are more of them
+    than the minimum; without a budget only ``first_trials`` are enqueued, as before."""
+    import physmend.sweep as sw
+    from physmend.sweep.group import proposed_together
+    from physmend.sweep.storage import _study, open_storage
+
+    space = sw.parse_space({"params": {"ude.width": {"choice": [8, 16, 32]}, "train.lr": {"log_uniform": [1e-3, 1e-1]}},
+                            "first_trials": [{"ude.width": 8}, {"ude.width": 32, "train.lr": 0.01}, {"ude.width": 16}]},
+                           name="mine", label="sweeps/mine.yaml")
+    storage = open_storage(f"sqlite:///{tmp_path / 'optuna.db'}")
+
+    def waiting(*overrides: str, name: str) -> list[dict]:
+        settings = sw.Settings.from_cfg(compose(list(overrides)).sweep)
+        study, created = _study(storage, name, settings, space, {})
+        assert created
+        return [t.system_attrs["fixed_params"] for t in study.get_trials(deepcopy=False)]
+
+    settings = sw.Settings.from_cfg(compose(["sweep.budget=60", "sweep.n_trials=4", "sweep.group=1"]).sweep)
+    proposed = proposed_together(space, settings, 4)
+    assert waiting("sweep.budget=60", "sweep.n_trials=4", "sweep.group=1", name="four") == proposed
+    assert [p["ude.width"] for p in proposed[:3]] == [8, 32, 16] and all(set(p) == {"ude.width", "train.lr"} for p in proposed)
+    assert proposed == proposed_together(space, settings, 4)  # the same seed: the same proposals
+    three = waiting("sweep.budget=60", "sweep.n_trials=2", "sweep.group=1", name="two")
+    assert len(three) == 3 and [p["ude.width"] for p in three] == [8, 32, 16]  # every first trial kept
+    assert waiting("sweep.n_trials=4", "sweep.group=1", name="count") == [dict(t) for t in space.first_trials]

@@ -196,7 +196,8 @@ def _study(storage: Any, name: str, settings: Settings, space: SearchSpace, fing
     """Create the study (recording what it was started with, enqueuing ``first_trials``) or load and check it.
 
     A budgeted sweep of single trials (``sweep.budget``, ``sweep.group: 1``) enqueues its whole
-    minimum instead, proposed together as one group of ``sweep.n_trials`` would be
+    minimum instead (and every one of ``first_trials``), proposed together as one group of
+    ``sweep.n_trials`` would be
     (:func:`physmend.sweep.group.proposed_together`): the trials the budget measures are then the
     same however many workers run them and whichever asks first, and the same as a stack of them."""
     import optuna
@@ -209,7 +210,7 @@ def _study(storage: Any, name: str, settings: Settings, space: SearchSpace, fing
         if settings.budgeted is not None and settings.group == 1:
             from physmend.sweep.group import proposed_together
 
-            first = proposed_together(space, settings, settings.n_trials)
+            first = proposed_together(space, settings, max(settings.n_trials, len(space.first_trials)))
         for values in first:
             study.enqueue_trial(values, skip_if_exists=True)
     else:

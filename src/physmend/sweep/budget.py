@@ -15,6 +15,10 @@ span, to the nearest whole number (1 where they ran one after another; then the 
 ``done + floor((budget - spent) / (spent / done))``). Where a trial takes seconds the sweep searches
 more architectures; where the minimum alone takes longer than the budget it stays at the minimum.
 
+Where each trial trains alone (``sweep.group: 1``) the minimum is proposed when the study is
+created, as one group of ``n_trials`` would be (:func:`physmend.sweep.storage._study`), so the
+trials measured are the same however many workers run them.
+
 The decision is made once per study and stored with it (:data:`BUDGET_ATTR`): a resumed sweep,
 and every worker of a study, use the same count. Trials themselves are deterministic given the
 count (each trial's sampler is seeded by ``seed`` + its number), so the same configuration, seed

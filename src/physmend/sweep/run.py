@@ -26,7 +26,7 @@ from physmend.sweep.settings import Settings
 from physmend.sweep.space import load_space
 from physmend.sweep.summary import summary
 from physmend.sweep.storage import _retry, _study, default_study_name, open_storage, study_fingerprint
-from physmend.sweep.workers import GIVEN_WINS_ENV, _join_workers, _start_workers
+from physmend.sweep.workers import GIVEN_WINS_ENV, PROBED_ENV, _join_workers, _start_workers
 
 
 class NoTrialCompleted(PhysmendError, RuntimeError):
@@ -75,7 +75,8 @@ def run_sweep(
             space = space.without(both)
     if overrides is not None:
         check_overrides(space, overrides)
-        probe_space(space, overrides, config_dir)
+        if os.environ.get(PROBED_ENV) != "1":  # a worker whose sweep composed these already: seconds saved
+            probe_space(space, overrides, config_dir)
     else:
         check_keys(space, cfg)
     problem = load_problem(cfg)
@@ -84,11 +85,19 @@ def run_sweep(
     if source_run_id:
         get_run(store, source_run_id)
     study_name = settings.study_name or default_study_name(problem, cfg, space)
-    study, created = _study(storage, study_name, settings, space, study_fingerprint(cfg, space))
-    tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
-    parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
-    configs = TrialConfigs(cfg, problem, overrides, config_dir)
+    # everything checked: the other workers start now and set themselves up while this one opens the
+    # study (whichever process gets there first creates it, its first trials and the parent run)
     helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir, given_wins, standby)
+    try:
+        study, created = _study(storage, study_name, settings, space, study_fingerprint(cfg, space))
+        tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
+        parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
+        configs = TrialConfigs(cfg, problem, overrides, config_dir)
+    except BaseException:
+        for proc in helpers:  # they would meet the same trouble
+            proc.terminate()
+            proc.wait()
+        raise
     return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
 
 

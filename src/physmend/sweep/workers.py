@@ -111,17 +111,22 @@ GIVEN_WINS_ENV = "PHYSMEND_SWEEP_GIVEN_WINS"
 over its search space (``physmend discover``): they leave the same keys out of the search."""
 
 
+PROBED_ENV = "PHYSMEND_SWEEP_PROBED"
+"""Set to ``1`` in the environment of the worker processes a sweep starts: the sweep has composed
+every choice of its space with its command line already (``probe_space``), so they do not again."""
+
+
 def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[str], config_dir: str | Path | None,
                    given_wins: bool = False, standby: Sequence[Any] = ()) -> list[Any]:
     """``count`` more ``physmend sweep`` processes on the same study (one torch thread each), started
-    after this one has created the study and its parent run: the ``standby`` processes first
+    once this one has checked everything it was given: the ``standby`` processes first
     (:mod:`physmend.sweep.standby`, already importing), new ones for the rest."""
     if count < 1:
         return []
     args = ["sweep", *([source_run_id] if source_run_id else []),
             *(["--config-dir", str(config_dir)] if config_dir is not None else []),
             *overrides, "sweep.workers=1", "sweep.progress=false"]
-    ours = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", GIVEN_WINS_ENV: "1" if given_wins else "0"}
+    ours = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", GIVEN_WINS_ENV: "1" if given_wins else "0", PROBED_ENV: "1"}
     from physmend.sweep import standby as waiting
 
     ready: list[Any] = []

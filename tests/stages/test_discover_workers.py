@@ -110,7 +110,7 @@ def test_a_budgeted_sweep_of_single_trials_enqueues_its_minimum_proposed_togethe
     then the sampler's proposals; every one of ``first_trials`` is kept where there are more of them
     than the minimum; without a budget only ``first_trials`` are enqueued, as before."""
     import physmend.sweep as sw
-    from physmend.sweep.group import proposed_together
+    from physmend.sweep.settings import proposed_together
     from physmend.sweep.storage import _study, open_storage
 
     space = sw.parse_space({"params": {"ude.width": {"choice": [8, 16, 32]}, "train.lr": {"log_uniform": [1e-3, 1e-1]}},

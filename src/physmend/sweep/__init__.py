@@ -50,7 +50,8 @@ Modules (nothing here imports :mod:`physmend.stages`)
     ``space``     search-space files, parsing, sampling into Hydra overrides
     ``restart``   which errors restart a trial, and with which settings
     ``budget``    how many trials a budget allows
-    ``settings``  the checked ``sweep.*`` options, sampler and pruner, the keys that shape a stack
+    ``settings``  the checked ``sweep.*`` options, sampler and pruner, the keys that shape a stack,
+                  the first trials proposed together
     ``configs``   each trial's composed configuration and problem
     ``storage``   the Optuna storage and study: open, fingerprint, tally
     ``workers``   worker processes, identity, heartbeats, stale trials

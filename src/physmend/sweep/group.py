@@ -27,23 +27,6 @@ if TYPE_CHECKING:
     from physmend.tracking import Store
 
 
-def proposed_together(space: SearchSpace, settings: Settings, count: int) -> list[dict[str, Any]]:
-    """The values of a new study's first ``count`` trials as :meth:`StackedTrials.trial_group` proposes
-    them for one group of ``count`` (``sweep.group_shapes`` aside): the space's ``first_trials`` first,
-    every trial asked before any is suggested, the sampler of the last one asked suggesting them all.
-    Computed on an in-memory study: nothing is stored."""
-    import optuna
-
-    study = optuna.create_study(direction="minimize")
-    for values in space.first_trials:
-        study.enqueue_trial(values, skip_if_exists=True)
-    trials = []
-    for _ in range(count):
-        study.sampler = settings.sampler_for(len(study.get_trials(deepcopy=False)))
-        trials.append(study.ask())
-    return [space.suggest(trial) for trial in trials]
-
-
 class StackedTrials:
     """The group methods of :class:`~physmend.sweep.loop.Sweep`: they use the sweep's state below and
     its ``tell`` (record an outcome in the study) and ``_surplus`` (a trial beyond ``n_trials``)."""

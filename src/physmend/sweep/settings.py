@@ -85,3 +85,20 @@ def shape_keys(space: SearchSpace) -> list[str]:
 
     shaping = (*SHARED_KEYS, "ude.width", "ude.depth")
     return [key for key in space.params if any(key == s or key.startswith(s + ".") for s in shaping)]
+
+
+def proposed_together(space: SearchSpace, settings: Settings, count: int) -> list[dict[str, Any]]:
+    """The values of a new study's first ``count`` trials as one group of ``count`` is proposed
+    (:meth:`physmend.sweep.group.StackedTrials.trial_group`, ``sweep.group_shapes`` aside): the
+    space's ``first_trials`` first, every trial asked before any is suggested, the sampler of the
+    last one asked suggesting them all. Computed on an in-memory study: nothing is stored."""
+    import optuna
+
+    study = optuna.create_study(direction="minimize")
+    for values in space.first_trials:
+        study.enqueue_trial(values, skip_if_exists=True)
+    trials = []
+    for _ in range(count):
+        study.sampler = settings.sampler_for(len(study.get_trials(deepcopy=False)))
+        trials.append(study.ask())
+    return [space.suggest(trial) for trial in trials]

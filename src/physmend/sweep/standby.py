@@ -55,22 +55,26 @@ def _serve() -> int:
         return 130
 
 
-def _wait_and_run() -> int:
-    import physmend.cli  # noqa: F401 - what a sweep worker imports, imported while waiting
-    import physmend.api.functions  # noqa: F401
-    import physmend.stages.sweep  # noqa: F401
-    import physmend.problem  # noqa: F401
-    import physmend.ude  # noqa: F401
-    import physmend.tracking  # noqa: F401
+#: what a sweep worker imports, imported while waiting
+PRELOAD = ("physmend.cli", "physmend.api.functions", "physmend.stages.sweep", "physmend.problem", "physmend.ude",
+           "physmend.tracking")
 
+
+def _wait_and_run() -> int:
+    import importlib
+
+    for name in PRELOAD:
+        importlib.import_module(name)
     line = sys.stdin.readline()
     if not line.strip():
         return 0  # released unused
     order: dict[str, Any] = json.loads(line)
     os.environ.update({str(k): str(v) for k, v in order.get("env", {}).items()})
-    from physmend.cli import main
+    sys.argv = ["physmend", *(str(a) for a in order["argv"])]
+    import runpy
 
-    return main([str(a) for a in order["argv"]])
+    runpy.run_module("physmend.cli", run_name="__main__")  # `physmend <argv>`: exits with its status
+    return 0
 
 
 if __name__ == "__main__":

@@ -198,7 +198,7 @@ def _study(storage: Any, name: str, settings: Settings, space: SearchSpace, fing
     A budgeted sweep of single trials (``sweep.budget``, ``sweep.group: 1``) enqueues its whole
     minimum instead (and every one of ``first_trials``), proposed together as one group of
     ``sweep.n_trials`` would be
-    (:func:`physmend.sweep.group.proposed_together`): the trials the budget measures are then the
+    (:func:`physmend.sweep.settings.proposed_together`): the trials the budget measures are then the
     same however many workers run them and whichever asks first, and the same as a stack of them."""
     import optuna
 
@@ -208,7 +208,7 @@ def _study(storage: Any, name: str, settings: Settings, space: SearchSpace, fing
         study.set_user_attr(CONFIG_ATTR, fingerprint)
         first: list[dict[str, Any]] = list(space.first_trials)
         if settings.budgeted is not None and settings.group == 1:
-            from physmend.sweep.group import proposed_together
+            from physmend.sweep.settings import proposed_together
 
             first = proposed_together(space, settings, max(settings.n_trials, len(space.first_trials)))
         for values in first:

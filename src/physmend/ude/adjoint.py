@@ -8,6 +8,9 @@ the discrete adjoint of the RK4 recursion, written out: per stage a handful of b
 (the network's layers transposed, the physics' ``Aᵀ``), and the gradients of every weight, bias,
 physics matrix and drive summed over all stages, segments and models at the end in one product
 each. The numbers are autograd's to rounding (tests/ude/test_adjoint.py, gradcheck in float64).
+On the CPU both time loops run compiled (:mod:`physmend.ude.compiled_solve`, :mod:`physmend.ude.rk4_loops`):
+the torch loops below (:class:`_Solve`) are the reference they are tested against and what runs on
+other devices.
 
 The right-hand side is the drive form of :mod:`physmend.ude.drive`, stacked over ``M`` models
 (rows model-major, ``R = M·S``)::
@@ -30,6 +33,7 @@ import torch
 from torch import nn
 
 from physmend.modeling.compile import BoundRhs
+from physmend.ude.compiled_solve import CompiledSolve, reduce_to
 from physmend.ude.drive import columns, drivable, split_first_layer
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.shooting import Shooting
@@ -56,6 +60,8 @@ _FUNCTIONS = {
 ACTIVATIONS = tuple(_FUNCTIONS)
 #: solves run with the hand-written backward pass in this process (what tests check it was used)
 STATS = {"solves": 0}
+#: on the CPU, the time loops compiled (:class:`physmend.ude.compiled_solve.CompiledSolve`); False: written in torch (:class:`_Solve`)
+LOOPS = {"compiled": True}
 
 
 class _Solve(torch.autograd.Function):
@@ -217,21 +223,13 @@ class _Solve(torch.autograd.Function):
             g_gain = None
             if need[6]:
                 gc = G if index is None else G[..., index]
-                g_gain = _reduce_to((gc.view(T, M, S, -1) * OUT.view(T, M, S, -1)).sum(0), ctx.gain_shape)
+                g_gain = reduce_to((gc.view(T, M, S, -1) * OUT.view(T, M, S, -1)).sum(0), ctx.gain_shape)
             g_layers: list[torch.Tensor | None] = []
             for l in range(len(weights)):
                 y = ys[l].view(T, M, S, -1)
                 g_layers.append(torch.bmm(rows(y).transpose(1, 2), rows(GA[l + 1])) if need[7 + 2 * l] else None)
                 g_layers.append(GA[l + 1].sum(dim=(0, 2)).unsqueeze(1) if need[8 + 2 * l] else None)
         return (None, g_u0, g_A, g_d, g_pre, g_wu, g_gain, *g_layers)
-
-
-def _reduce_to(t: torch.Tensor, shape: torch.Size) -> torch.Tensor:
-    """``t`` summed over the dimensions that ``shape`` broadcasts."""
-    while t.dim() > len(shape):
-        t = t.sum(0)
-    dims = [i for i, s in enumerate(shape) if s == 1 and t.shape[i] != 1]
-    return t.sum(dim=dims, keepdim=True) if dims else t
 
 
 def rk4_adjoint(u0: torch.Tensor, A: torch.Tensor, d: torch.Tensor, pre: torch.Tensor, wu: torch.Tensor,
@@ -250,7 +248,8 @@ def rk4_adjoint(u0: torch.Tensor, A: torch.Tensor, d: torch.Tensor, pre: torch.T
     lo, hi = box if box is not None else (None, None)
     flat = [t for pair in layers for t in pair]
     STATS["solves"] += 1
-    return _Solve.apply((h, steps, lo, hi, reads, index, activation), u0, A, d, pre, wu, gain, *flat)
+    solve = CompiledSolve if u0.device.type == "cpu" and LOOPS["compiled"] else _Solve
+    return solve.apply((h, steps, lo, hi, reads, index, activation), u0, A, d, pre, wu, gain, *flat)
 
 
 def adjoint_applies(hybrid: HybridModel) -> bool:
@@ -288,3 +287,20 @@ def hybrid_solve(hybrid: HybridModel, p: torch.Tensor, u0: torch.Tensor, plan: S
     return rk4_adjoint(u0, bound.A.expand(u0.shape[0], -1, -1), d, pre.unsqueeze(1), wu.T.unsqueeze(0), rest,
                        gain.unsqueeze(0) if gain.dim() == 2 else gain.view(1, 1, -1), h=plan.dt, steps=plan.steps,
                        activation=hybrid.spec.activation, box=box, reads=reads, index=index)
+
+
+def warm(dtype: torch.dtype = torch.float64) -> None:
+    """Compile the loops for ``dtype`` (or load them from numba's cache beside the module) with a
+    solve of a few numbers: the first compilation takes seconds, so a process that will train
+    later does it while it would otherwise wait."""
+    g = torch.Generator().manual_seed(0)
+    u0, A, d, pre, wu, w, b, gain = (torch.randn(*s, dtype=dtype, generator=g).requires_grad_()
+                                     for s in ((2, 2), (2, 2, 2), (3, 2, 2), (3, 1, 2, 3), (1, 2, 3), (1, 3, 2), (1, 1, 2), (1, 2, 2)))
+    box = (torch.full((2,), -5.0, dtype=dtype), torch.full((2,), 5.0, dtype=dtype))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        traj = rk4_adjoint(u0, A, d, pre, wu, [(w, b)], gain, h=0.1, steps=1, activation="tanh", box=box)
+        traj.sum().backward()
+    finally:
+        torch.set_num_threads(threads)

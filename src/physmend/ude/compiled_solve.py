@@ -1,0 +1,146 @@
+"""The training solve of :mod:`physmend.ude.adjoint` with its two time loops compiled
+(:mod:`physmend.ude.rk4_loops`): the loops take numpy views of the tensors (no copies where the
+inputs are contiguous), and every gradient that is a product over all stages (the matrices', the
+weights') is one batched product here."""
+
+from __future__ import annotations
+
+import sys
+import threading
+
+import torch
+
+
+class CompiledSolve(torch.autograd.Function):
+    """:class:`physmend.ude.adjoint._Solve` with its two time loops compiled (:mod:`physmend.ude.rk4_loops`): the same
+    inputs, output and gradients (to rounding: the loops add in another order)."""
+
+    @staticmethod
+    def forward(ctx, meta, u0, A, d, pre, wu, gain, *layers):  # noqa: ANN001, ANN205
+        from physmend.ude import rk4_loops
+
+        h, steps, lo, hi, reads, index, activation = meta
+        M, S, w0 = pre.shape[1:]
+        R, n = u0.shape
+        T, H = 4 * steps, 2 * steps + 1
+        weights, biases = layers[0::2], layers[1::2]
+        L = len(weights)
+        dims = [w0, *(w.shape[-1] for w in weights)]
+        P, k, dt = max(dims), dims[-1], u0.dtype
+        W, b = u0.new_zeros(L, M, P, P), u0.new_zeros(L, M, P)
+        for l, (w, bias) in enumerate(zip(weights, biases)):
+            if l == L - 1:  # the output layer transposed: its few outputs are then products of rows
+                W[l, :, :w.shape[-1], :w.shape[-2]] = w.detach().transpose(-1, -2)
+            else:
+                W[l, :, :w.shape[-2], :w.shape[-1]] = w.detach()
+            b[l, :, :w.shape[-1]] = bias.detach().reshape(M, -1)
+        boxed = lo is not None
+        box = [torch.broadcast_to(x.detach(), (R, n)).to(dt).contiguous() for x in (lo, hi)] if boxed else [b[0]] * 2
+        ints = {"device": "cpu", "dtype": torch.int64}
+        A = A.detach().expand(R, n, n).contiguous()
+        fixed = [wu.detach().contiguous(), W, b, torch.tensor(dims, **ints),
+                 torch.broadcast_to(gain.detach(), (M, S, k)).reshape(R, k).contiguous(),
+                 torch.arange(n, **ints) if reads is None else reads.to(**ints).contiguous(),
+                 torch.arange(n, **ints) if index is None else index.to(**ints).contiguous()]
+        take = SPARE.take  # every value of these the loops write (the layers' padding is never read)
+        traj = u0.new_empty(steps + 1, R, n)
+        Vs, Z, Y, OUT = take((R, T, n), dt), take((L, R, T, P), dt), take((L, R, T, P), dt), take((R, T, k), dt)
+        MASK = take((R, T, n), dt) if boxed else OUT
+        _loop(rk4_loops, "forward", R)(float(h), u0.detach().contiguous().numpy(), A.transpose(1, 2).contiguous().numpy(),
+                          d.detach().expand(H, R, n).contiguous().numpy(),
+                          pre.detach().expand(H, M, S, w0).contiguous().numpy(), *(x.numpy() for x in fixed),
+                          rk4_loops.CODES[activation], S, boxed, box[0].numpy(), box[1].numpy(), traj.numpy(),
+                          Vs.numpy(), Z.numpy(), Y.numpy(), OUT.numpy(), MASK.numpy())
+        ctx.meta, ctx.shape, ctx.gain_shape, ctx.dims = meta, (M, S, R, n, L, P), gain.shape, dims
+        ctx.loops = (A, fixed, Vs, Z, Y, OUT, MASK)
+        return traj
+
+    @staticmethod
+    def backward(ctx, grad):  # noqa: ANN001, ANN205
+        from physmend.ude import rk4_loops
+
+        h, steps, lo, hi, reads, index, activation = ctx.meta
+        M, S, R, n, L, P = ctx.shape
+        dims = ctx.dims
+        A, fixed, Vs, Z, Y, OUT, MASK = ctx.loops
+        wu, W, _, dims_t, gain, reads_t, index_t = fixed
+        T, H, w0, k, dt = 4 * steps, 2 * steps + 1, dims[0], dims[-1], A.dtype
+        need = ctx.needs_input_grad
+        # written by the loops (the layers' padding is never read)
+        g_u0, G, GA = A.new_empty(R, n), SPARE.take((R, T, n), dt), SPARE.take((L + 1, R, T, P), dt)
+        g_d, g_pre, g_gain = A.new_empty(H, R, n), A.new_empty(H, M, S, w0), A.new_empty(R, k)
+        _loop(rk4_loops, "backward", R)(float(h), grad.detach().contiguous().numpy(), A.numpy(), wu.numpy(), W.numpy(),
+                           dims_t.numpy(), gain.numpy(), reads_t.numpy(), index_t.numpy(), rk4_loops.CODES[activation],
+                           S, lo is not None, Z.numpy(), Y.numpy(), OUT.numpy(), MASK.numpy(), g_u0.numpy(),
+                           G.numpy(), GA.numpy(), g_d.numpy(), g_pre.numpy(), g_gain.numpy())
+
+        def rows(x: torch.Tensor, width: int) -> torch.Tensor:  # (R, T, ≥width) -> (M, S·T, width)
+            return x[..., :width].reshape(M, S * T, width)
+
+        g_A = torch.bmm(G.transpose(1, 2), Vs) if need[2] else None
+        g_wu = None
+        if need[5]:
+            vr = Vs if reads is None else Vs[..., reads]
+            g_wu = torch.bmm(rows(vr, vr.shape[-1]).transpose(1, 2), rows(GA[0], w0))
+        g_gain = reduce_to(g_gain.view(M, S, k), ctx.gain_shape) if need[6] else None
+        g_layers: list[torch.Tensor | None] = []
+        for l in range(L):
+            up = rows(GA[l + 1], dims[l + 1])
+            g_layers.append(torch.bmm(rows(Y[l], dims[l]).transpose(1, 2), up) if need[7 + 2 * l] else None)
+            g_layers.append(up.sum(dim=1, keepdim=True) if need[8 + 2 * l] else None)
+        return (None, g_u0, g_A, g_d if need[3] else None, g_pre if need[4] else None, g_wu, g_gain, *g_layers)
+
+
+def _loop(loops: object, name: str, rows: int):  # noqa: ANN202
+    """``loops.<name>``, or its threaded twin on as many threads as torch has (``threads``) where
+    there are rows to share."""
+    threads = min(torch.get_num_threads(), rows)
+    if threads <= 1:
+        return getattr(loops, name)
+    import numba
+
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    return getattr(loops, f"{name}_threads")
+
+
+class _Spare(threading.local):
+    """Buffers of the compiled solve, reused by the next solve of the same shape once nothing holds
+    them (the solve that used them was freed with its graph): a fresh buffer of a few MB is new
+    memory that the loops fault in page by page, a fifth of an epoch's time. Holds the latest
+    buffers up to ``keep_bytes`` in all, in use or not."""
+
+    def __init__(self, keep_bytes: int = 256 * 2**20) -> None:
+        self.keep_bytes = keep_bytes
+        self.held: list[torch.Tensor] = []
+
+    def take(self, shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+        for i in range(len(self.held)):
+            if self.held[i].shape == shape and self.held[i].dtype == dtype and _unused(self.held, i):
+                return self.held[i]
+        t = torch.empty(shape, dtype=dtype)
+        self.held.insert(0, t)
+        total = 0
+        for i, x in enumerate(self.held):
+            total += x.numel() * x.element_size()
+            if total > self.keep_bytes:
+                del self.held[max(i, 1):]
+                break
+        return t
+
+
+def _unused(held: list[torch.Tensor], i: int) -> bool:
+    """Whether ``held[i]`` is referred to by ``held`` alone (no solve's context holds it)."""
+    return sys.getrefcount(held[i]) <= _ALONE
+
+
+_ALONE = sys.getrefcount(torch.empty(0)) + 1  # a list's element, as passed to getrefcount (the temporary's count + the list)
+SPARE = _Spare()
+
+
+def reduce_to(t: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    """``t`` summed over the dimensions that ``shape`` broadcasts."""
+    while t.dim() > len(shape):
+        t = t.sum(0)
+    dims = [i for i, s in enumerate(shape) if s == 1 and t.shape[i] != 1]
+    return t.sum(dim=dims, keepdim=True) if dims else t
+

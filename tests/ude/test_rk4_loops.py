@@ -1,0 +1,142 @@
+"""The compiled time loops of the training solve (:mod:`physmend.ude.rk4_loops`) give the torch
+loops' trajectories and gradients (:class:`physmend.ude.adjoint._Solve`, itself checked against
+autograd in test_adjoint.py) on every shape they take; the threaded loops give the serial ones'
+numbers exactly; reused buffers never leak one solve's values into another's; the vectorisable
+tanh is the C library's to 2 units in the last place."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from physmend.ude import adjoint, compiled_solve
+from physmend.ude.adjoint import ACTIVATIONS
+
+from tests.ude.test_adjoint import _call, _problem
+
+
+def _solve(activation: str, tensors: list[torch.Tensor], kw: dict, *, compiled: bool, threads: int = 1,
+           weight: torch.Tensor | None = None) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """The trajectory and the gradient of every input of ``sum(w·traj²)`` with the compiled or torch loops."""
+    before = (adjoint.LOOPS["compiled"], torch.get_num_threads())
+    adjoint.LOOPS["compiled"] = compiled
+    torch.set_num_threads(threads)
+    try:
+        for t in tensors:
+            t.grad = None
+        traj = _call(activation, kw)(*tensors)
+        w = torch.ones_like(traj) if weight is None else weight
+        (w * traj.pow(2)).sum().backward()
+        return traj.detach(), [t.grad.clone() for t in tensors]
+    finally:
+        adjoint.LOOPS["compiled"], _ = before
+        torch.set_num_threads(before[1])
+
+
+SHAPES = [{}, {"reads": [0, 2], "index": [1]}, {"index": [2, 0, 1]}, {"M": 1, "S": 4}, {"box": False},
+          {"M": 3, "S": 2, "h1": 5, "h2": 7}]
+
+
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+@pytest.mark.parametrize("shape", SHAPES, ids=["stack-box", "subsets", "index-order", "one-model", "no-box", "widths"])
+def test_compiled_loops_are_the_torch_loops(activation: str, shape: dict) -> None:
+    tensors, kw = _problem(K=5, **shape)
+    with torch.no_grad():
+        tensors[0].mul_(1.2)  # some states pressed against the box (where there is one)
+        tensors[2].mul_(3.0)
+    g = torch.Generator().manual_seed(3)
+    weight = torch.rand(6, *tensors[0].shape, dtype=tensors[0].dtype, generator=g)
+    want_traj, want = _solve(activation, tensors, kw, compiled=False, weight=weight)
+    got_traj, got = _solve(activation, tensors, kw, compiled=True, weight=weight)
+    if kw["box"] is not None:
+        lo, hi = kw["box"]
+        assert bool(((want_traj == lo) | (want_traj == hi)).any())  # the box held somewhere
+    torch.testing.assert_close(got_traj, want_traj, rtol=1e-12, atol=1e-13)
+    assert len(got) == 10
+    for i, (a, b) in enumerate(zip(got, want)):
+        assert float(b.abs().max()) > 0, i
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11, msg=f"input {i}")
+
+
+def test_float32_loops_are_the_torch_loops() -> None:
+    tensors, kw = _problem(K=4)
+    tensors = [t.detach().float().requires_grad_() for t in tensors]
+    kw["box"] = tuple(b.float() for b in kw["box"])
+    want_traj, want = _solve("tanh", tensors, kw, compiled=False)
+    got_traj, got = _solve("tanh", tensors, kw, compiled=True)
+    assert got_traj.dtype == torch.float32
+    torch.testing.assert_close(got_traj, want_traj, rtol=1e-5, atol=1e-5)
+    for a, b in zip(got, want):
+        assert a.dtype == torch.float32
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("activation", ["tanh", "gelu"])
+def test_threaded_loops_are_the_serial_loops(activation: str) -> None:
+    """Rows shared among threads do the same arithmetic in the same order: equal to the last bit."""
+    tensors, kw = _problem(M=2, S=5, K=6)
+    one_traj, one = _solve(activation, tensors, kw, compiled=True, threads=1)
+    two_traj, two = _solve(activation, tensors, kw, compiled=True, threads=2)
+    assert torch.equal(one_traj, two_traj)
+    for a, b in zip(one, two):
+        assert torch.equal(a, b)
+
+
+def test_buffers_are_reused_only_once_free() -> None:
+    """Two solves alive at once, a graph kept for a second backward pass, then a solve of the same
+    shape after both were freed: every gradient is what a solve alone gives, and freed buffers are
+    taken again (not allocated anew)."""
+    a_tensors, kw = _problem(K=5)
+    b_tensors, _ = _problem(K=5)
+    with torch.no_grad():
+        b_tensors[2].mul_(-2.0)
+    want_a = _solve("tanh", a_tensors, kw, compiled=False)[1]
+    want_b = _solve("tanh", b_tensors, kw, compiled=False)[1]
+    f = _call("tanh", kw)
+    for t in (*a_tensors, *b_tensors):
+        t.grad = None
+    compiled_solve.SPARE.held.clear()
+    ta, tb = f(*a_tensors), f(*b_tensors)  # both alive: b may not take a's buffers
+    held = [id(t) for t in compiled_solve.SPARE.held]
+    assert len(set(held)) == len(held) == 10  # five kinds each, none shared
+    ta.pow(2).sum().backward(retain_graph=True)
+    first = [t.grad.clone() for t in a_tensors]
+    for t in a_tensors:
+        t.grad = None
+    tc = f(*b_tensors)  # a's graph is kept: its buffers stay its own
+    ta.pow(2).sum().backward()
+    tb.pow(2).sum().backward()
+    for got, want in ((first, want_a), ([t.grad for t in a_tensors], want_a), ([t.grad for t in b_tensors], want_b)):
+        for x, y in zip(got, want):
+            torch.testing.assert_close(x, y, rtol=1e-9, atol=1e-11)
+    del ta, tb, tc
+    before = [id(t) for t in compiled_solve.SPARE.held]
+    f(*a_tensors).pow(2).sum().backward()
+    assert [id(t) for t in compiled_solve.SPARE.held] == before  # all freed: taken again, none added
+
+
+def test_tanh_is_the_c_library_tanh() -> None:
+    import numba
+
+    from physmend.ude.rk4_loops import _tanh
+
+    @numba.njit
+    def each(x: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover - compiled
+        for i in range(x.shape[0]):
+            out[i] = _tanh(x[i])
+
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.normal(0, 1, 200_000), rng.normal(0, 6, 200_000), rng.uniform(-1e-6, 1e-6, 10_000),
+                        np.linspace(-25, 25, 100_001), [0.625, -0.625, 20.0, -20.0, 19.999, 5e-324, 1e-300]])
+    out = np.empty_like(x)
+    each(x, out)
+    want = np.array([math.tanh(v) for v in x])
+    ulps = np.abs(out - want) / np.spacing(np.abs(want))
+    assert float(ulps.max()) <= 2.0
+    special = np.array([np.inf, -np.inf, np.nan, 0.0, 40.0, -1e308])
+    got = np.empty_like(special)
+    each(special, got)
+    assert got[0] == 1.0 and got[1] == -1.0 and np.isnan(got[2]) and got[3] == 0.0 and got[4] == 1.0 and got[5] == -1.0

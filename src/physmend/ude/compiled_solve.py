@@ -109,7 +109,7 @@ class _Spare(threading.local):
     memory that the loops fault in page by page, a fifth of an epoch's time. Holds the latest
     buffers up to ``keep_bytes`` in all, in use or not."""
 
-    def __init__(self, keep_bytes: int = 256 * 2**20) -> None:
+    def __init__(self, keep_bytes: int = 64 * 2**20) -> None:
         self.keep_bytes = keep_bytes
         self.held: list[torch.Tensor] = []
 

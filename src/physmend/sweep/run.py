@@ -93,6 +93,12 @@ def run_sweep(
         tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
         parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
         configs = TrialConfigs(cfg, problem, overrides, config_dir)
+        if str(problem.device).startswith("cpu"):
+            from physmend.ude.adjoint import warm
+
+            # the training loops compiled (a fresh install) or read from numba's cache here, not inside
+            # the first trial: a Ctrl-C that lands in an import there is an ImportError, not an interrupt
+            warm(problem.dtype)
     except BaseException:
         for proc in helpers:  # they would meet the same trouble
             proc.terminate()

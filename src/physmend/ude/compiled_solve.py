@@ -10,6 +10,8 @@ import threading
 
 import torch
 
+from physmend.ude import rk4_loops  # numba, imported with the trainer (not in the middle of a trial)
+
 
 class CompiledSolve(torch.autograd.Function):
     """:class:`physmend.ude.adjoint._Solve` with its two time loops compiled (:mod:`physmend.ude.rk4_loops`): the same
@@ -17,8 +19,6 @@ class CompiledSolve(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, meta, u0, A, d, pre, wu, gain, *layers):  # noqa: ANN001, ANN205
-        from physmend.ude import rk4_loops
-
         h, steps, lo, hi, reads, index, activation = meta
         M, S, w0 = pre.shape[1:]
         R, n = u0.shape
@@ -57,8 +57,6 @@ class CompiledSolve(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):  # noqa: ANN001, ANN205
-        from physmend.ude import rk4_loops
-
         h, steps, lo, hi, reads, index, activation = ctx.meta
         M, S, R, n, L, P = ctx.shape
         dims = ctx.dims

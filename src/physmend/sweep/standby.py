@@ -7,7 +7,7 @@ by the process that started it (:func:`physmend.sweep.workers._start_workers`) â
 ``physmend discover`` starts its sweep's extra workers this way before its diagnose stage, so that
 they train from the moment the sweep asks for them instead of importing first (about 5 s of a
 worker's start on 2 cores; 12 s where nothing is byte-compiled yet), and compile the training
-solve's loops if nothing has yet (about 8 s, once per installation).
+solve's loops if nothing has yet (12â€“14 s, once per installation).
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ import torch
 
 from physmend.config import compose
 from physmend.problem import load_problem
+from physmend.ude import fixed_step
 from physmend.ude.drive import drivable, hybrid_drive
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.shooting import BOX_MARGIN, initial_segments, plan_shooting, rk4_segments
@@ -137,6 +138,7 @@ def test_the_drive_table_is_the_right_hand_side(user_project: Path, monkeypatch:
     from physmend.ude.drive import drive_table
 
     monkeypatch.chdir(user_project)
+    monkeypatch.setattr(fixed_step, "LEVELS", 0)  # the adaptive solves compared (fixed steps: test_fixed_step.py)
     _, problem, ref, hybrid, _, _ = _setup(user_project, extra)
     batch = ref.batch
     p = hybrid.parameters_for(batch.params)
@@ -206,6 +208,7 @@ def test_a_drive_table_over_the_memory_bound_is_not_built(user_project: Path, mo
     assert not drive.table_fits(16, 20_000, 2 + 64, torch.float64)  # a 16-model stack, 20,000 knots: 338 MB
     assert drive.table_fits(3, 600, 2 + 16, torch.float64)
     monkeypatch.chdir(user_project)
+    monkeypatch.setattr(fixed_step, "LEVELS", 0)  # the adaptive solves compared
     _, problem, _, hybrid, _, _ = _setup(user_project, [])
     fast = metrics.evaluate_with(hybrid, problem, RODAS)
     monkeypatch.setattr(drive, "TABLE_MAX_BYTES", 0)
@@ -231,6 +234,7 @@ def test_masked_variants_in_one_solve_get_their_own_evaluations(user_project: Pa
     from physmend.simulate import make_batch
 
     monkeypatch.chdir(user_project)
+    monkeypatch.setattr(fixed_step, "LEVELS", 0)  # the adaptive solve of the variants (fixed steps: test_fixed_step.py)
     path = user_project / "recordings" / "run2.csv"
     frame = pd.read_csv(path)
     frame.loc[frame.index[1:], "t_s"] += 0.05  # between run1's times (each counts from its start)

@@ -290,7 +290,7 @@ def hybrid_solve(hybrid: HybridModel, p: torch.Tensor, u0: torch.Tensor, plan: S
 
 
 def warm(dtype: torch.dtype = torch.float64) -> None:
-    """Compile the loops for ``dtype`` (or load them from numba's cache beside the module) with a
+    """Compile the loops (the training solve's and :mod:`physmend.ude.rk4_steps`') for ``dtype`` (or load them from numba's cache beside the module) with a
     solve of a few numbers: the first compilation takes seconds, so a process that will train
     later does it while it would otherwise wait."""
     g = torch.Generator().manual_seed(0)
@@ -302,5 +302,11 @@ def warm(dtype: torch.dtype = torch.float64) -> None:
     try:
         traj = rk4_adjoint(u0, A, d, pre, wu, [(w, b)], gain, h=0.1, steps=1, activation="tanh", box=box)
         traj.sum().backward()
+        if LOOPS["compiled"]:  # and the whole-trajectory loop (physmend.ude.fixed_step)
+            from physmend.ude.fixed_step import DriveForm, _solve
+
+            with torch.no_grad():
+                form = DriveForm(A, lambda times: (d, pre), wu, [(w, b)], gain, None, None, "tanh", 1)
+                _solve(form, u0, torch.tensor([[0.0, 0.1], [0.0, 0.1]], dtype=dtype))
     finally:
         torch.set_num_threads(threads)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import sys
 import threading
+from collections.abc import Sequence
 
 import torch
 
@@ -23,25 +24,12 @@ class CompiledSolve(torch.autograd.Function):
         M, S, w0 = pre.shape[1:]
         R, n = u0.shape
         T, H = 4 * steps, 2 * steps + 1
-        weights, biases = layers[0::2], layers[1::2]
-        L = len(weights)
-        dims = [w0, *(w.shape[-1] for w in weights)]
-        P, k, dt = max(dims), dims[-1], u0.dtype
-        W, b = u0.new_zeros(L, M, P, P), u0.new_zeros(L, M, P)
-        for l, (w, bias) in enumerate(zip(weights, biases)):
-            if l == L - 1:  # the output layer transposed: its few outputs are then products of rows
-                W[l, :, :w.shape[-1], :w.shape[-2]] = w.detach().transpose(-1, -2)
-            else:
-                W[l, :, :w.shape[-2], :w.shape[-1]] = w.detach()
-            b[l, :, :w.shape[-1]] = bias.detach().reshape(M, -1)
+        L = len(layers) // 2
+        W, b, dims, fixed = pack(wu, gain, layers, reads, index, M, S, n)
+        P, k, dt = W.shape[-1], dims[-1], u0.dtype
         boxed = lo is not None
         box = [torch.broadcast_to(x.detach(), (R, n)).to(dt).contiguous() for x in (lo, hi)] if boxed else [b[0]] * 2
-        ints = {"device": "cpu", "dtype": torch.int64}
         A = A.detach().expand(R, n, n).contiguous()
-        fixed = [wu.detach().contiguous(), W, b, torch.tensor(dims, **ints),
-                 torch.broadcast_to(gain.detach(), (M, S, k)).reshape(R, k).contiguous(),
-                 torch.arange(n, **ints) if reads is None else reads.to(**ints).contiguous(),
-                 torch.arange(n, **ints) if index is None else index.to(**ints).contiguous()]
         take = SPARE.take  # every value of these the loops write (the layers' padding is never read)
         traj = u0.new_empty(steps + 1, R, n)
         Vs, Z, Y, OUT = take((R, T, n), dt), take((L, R, T, P), dt), take((L, R, T, P), dt), take((R, T, k), dt)
@@ -87,6 +75,31 @@ class CompiledSolve(torch.autograd.Function):
             g_layers.append(torch.bmm(rows(Y[l], dims[l]).transpose(1, 2), up) if need[7 + 2 * l] else None)
             g_layers.append(up.sum(dim=1, keepdim=True) if need[8 + 2 * l] else None)
         return (None, g_u0, g_A, g_d if need[3] else None, g_pre if need[4] else None, g_wu, g_gain, *g_layers)
+
+
+def pack(wu: torch.Tensor, gain: torch.Tensor, layers: Sequence[torch.Tensor], reads: torch.Tensor | None,
+         index: torch.Tensor | None, M: int, S: int, n: int
+         ) -> tuple[torch.Tensor, torch.Tensor, list[int], list[torch.Tensor]]:
+    """The network in the loops' layout (:mod:`physmend.ude.rk4_loops`): the layers after the first
+    zero-padded ``W (L, M, P, P)``, ``b (L, M, P)`` (the output layer transposed), the widths
+    ``dims``, and ``[wu, W, b, dims, gain (R, k), reads, index]`` as the loops take them."""
+    weights, biases = layers[0::2], layers[1::2]
+    L = len(weights)
+    dims = [wu.shape[-1], *(w.shape[-1] for w in weights)]
+    P, k = max(dims), dims[-1]
+    W, b = wu.new_zeros(L, M, P, P), wu.new_zeros(L, M, P)
+    for l, (w, bias) in enumerate(zip(weights, biases)):
+        if l == L - 1:  # the output layer transposed: its few outputs are then products of rows
+            W[l, :, :w.shape[-1], :w.shape[-2]] = w.detach().transpose(-1, -2)
+        else:
+            W[l, :, :w.shape[-2], :w.shape[-1]] = w.detach()
+        b[l, :, :w.shape[-1]] = bias.detach().reshape(M, -1)
+    ints = {"device": "cpu", "dtype": torch.int64}
+    fixed = [wu.detach().contiguous(), W, b, torch.tensor(dims, **ints),
+             torch.broadcast_to(gain.detach(), (M, S, k)).reshape(M * S, k).contiguous(),
+             torch.arange(n, **ints) if reads is None else reads.to(**ints).contiguous(),
+             torch.arange(n, **ints) if index is None else index.to(**ints).contiguous()]
+    return W, b, dims, fixed
 
 
 def _loop(loops: object, name: str, rows: int):  # noqa: ANN202

@@ -103,7 +103,7 @@ def with_physics(u: torch.Tensor, d: torch.Tensor, linear_plus: Callable[[torch.
     return du + corr if index is None else du.index_add(-1, index, corr)
 
 
-def _network_parts(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[
+def network_parts(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, mask: torch.Tensor | None = None) -> tuple[
         torch.Tensor, torch.Tensor, list[tuple[torch.Tensor, torch.Tensor] | nn.Module], torch.Tensor]:
     """The network of ``hybrid`` split for drives over the inputs ``xs (H, S, m)`` (``p (S, n_params)``):
     the first layer's input and parameter part with its bias ``(H, S, h1)``, its state weights
@@ -137,7 +137,7 @@ def hybrid_drive(hybrid: HybridModel, p: torch.Tensor, xs: torch.Tensor, rows: t
     linear_plus, physics = physics_drive(hybrid, p, xs, rows)
     if rows is not None:
         p = p[rows]
-    pre, wu_t, rest, gain = _network_parts(hybrid, p, xs)
+    pre, wu_t, rest, gain = network_parts(hybrid, p, xs)
     state_idx, index = columns(hybrid)
 
     def f(u: torch.Tensor, drive: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -167,7 +167,7 @@ def drive_table(hybrid: HybridModel, p: torch.Tensor, inputs: PiecewiseLinear, m
     where :func:`drivable` holds; no gradients are meant to pass (whole-trajectory evaluations)."""
     xs = inputs.values.transpose(0, 1)  # (K, B, m): the inputs at their knots
     linear_plus, physics = physics_drive(hybrid, p, xs)
-    pre, wu_t, rest, gain = _network_parts(hybrid, p, xs, mask)
+    pre, wu_t, rest, gain = network_parts(hybrid, p, xs, mask)
     n = physics.shape[-1]
     table = PiecewiseLinear(inputs.knots, torch.cat([physics, pre], -1).transpose(0, 1).contiguous())
     state_idx, index = columns(hybrid)

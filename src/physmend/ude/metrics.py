@@ -19,6 +19,7 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch, SimulationError, make_batch
+from physmend.simulate.batch import own_stops
 from physmend.simulate.initial import estimate_initial, has_unknown
 from physmend.ude.hybrid import HybridModel
 from physmend.ude.outcome import TrainingDiverged
@@ -151,6 +152,9 @@ def hybrid_states(hybrid: HybridModel, problem: Problem, batch: Batch, sim: dict
         knots = sub.inputs.knots.shape[0]
         if not drivable(hybrid) or not table_fits(sub.size, knots, len(names) + hybrid.spec.widths[0], p.dtype):
             return simulate_with(guarded(hybrid.rhs(p), limits, sub.ids, names), sub, u0, sim)
+        states = fixed_step_states(hybrid, p, sub, u0, sim, limits)
+        if states is not None:
+            return states
         # the same function with the input-dependent work done once per knot (physmend.ude.drive.drive_table)
         rhs, table = drive_table(hybrid, p, sub.inputs)
         return simulate_with(guarded(rhs, limits, sub.ids, names), dataclasses.replace(sub, inputs=table), u0,
@@ -228,8 +232,36 @@ def _kept_outputs(hybrid: HybridModel, problem: Problem, batch: Batch, sim: dict
                         dtype=hybrid.out_mask.dtype).repeat_interleave(b, 0)  # (V·B, k)
     with torch.no_grad():
         p = hybrid.parameters_for(rows.params)
-        rhs, table = drive_table(hybrid, p, rows.inputs, mask)
         limits = hybrid.spec.box(LEAVE_MARGIN, problem.dtype)
-        states = simulate_with(guarded(rhs, limits, rows.ids, problem.compiled.state_names),
-                               dataclasses.replace(rows, inputs=table), rows.u0, with_stops(sim, rows))
+        states = fixed_step_states(hybrid, p, rows, rows.u0, sim, limits, mask)
+        if states is None:
+            rhs, table = drive_table(hybrid, p, rows.inputs, mask)
+            states = simulate_with(guarded(rhs, limits, rows.ids, problem.compiled.state_names),
+                                   dataclasses.replace(rows, inputs=table), rows.u0, with_stops(sim, rows))
         return problem.compiled.outputs(states, rows.inputs.at(rows.t), p[None])
+
+
+def fixed_step_states(hybrid: HybridModel, p: torch.Tensor, rows: Batch, u0: torch.Tensor, sim: dict[str, Any],
+                      limits: tuple[torch.Tensor, torch.Tensor] | None, mask: torch.Tensor | None = None
+                      ) -> torch.Tensor | None:
+    """States ``(T, B, n)`` of ``hybrid`` on ``rows`` by :func:`~physmend.ude.fixed_step.rk4_states`
+    (each row from the stops its own clock would take), or None where that does not apply or does
+    not agree within ``sim``'s tolerances: the adaptive solve then decides. No gradients."""
+    from physmend.ude.fixed_step import applies, hybrid_form, rk4_states
+
+    if torch.is_grad_enabled() or not applies(sim, hybrid.spec.activation, u0.device):
+        return None
+    form = hybrid_form(hybrid, p, rows.inputs, mask)
+    if form is None:
+        return None
+    return rk4_states(form, u0, rows.t, row_stops(rows, sim), sim["rtol"], sim["atol"], limits)
+
+
+def row_stops(rows: Batch, sim: dict[str, Any]) -> list[torch.Tensor]:
+    """Each row's stops as the adaptive solve of ``rows`` with ``sim`` would take them: its own
+    clock's (:func:`~physmend.simulate.batch.own_stops`, or ``sim``'s fixed clocks), or with one
+    clock for all, the shared times and input knots."""
+    stops = sim["options"]["clocks"] if "clocks" in sim["options"] else own_stops(rows)
+    if stops is None:
+        stops = [torch.unique(torch.cat([rows.t, rows.inputs.knots.to(rows.t.dtype)]))] * rows.size
+    return list(stops)

@@ -16,6 +16,7 @@ import torch
 from physmend.simulate import PiecewiseLinear
 from physmend.ude.adjoint import ACTIVATIONS as ADJOINT_ACTIVATIONS, rk4_adjoint
 from physmend.ude.drive import Drives, columns, drivable, physics_drive, split_first_layer, table_fits, with_physics
+from physmend.ude.fixed_step import DriveForm
 from physmend.ude.shooting import Shooting
 from physmend.ude.stack.net import StackedNet
 
@@ -112,6 +113,32 @@ class StackDrives:
             return with_physics(u, d_phys, linear_plus, corr if inv is None else corr * inv, index)
 
         return f, table
+
+    def _form(self, net: StackedNet, m: int, p: torch.Tensor, inputs: PiecewiseLinear) -> DriveForm | None:
+        """The drive form of the stacked models on the rows of ``inputs`` (``m·R`` rows, model-major)
+        for a whole-trajectory solve by :func:`~physmend.ude.fixed_step.rk4_states`; None where
+        the adjoint's form does not apply (:meth:`_adjoint`)."""
+        h = self.template
+        if (not drivable(h) or any(u is not None for u in net.use) or len(set(net.activations)) != 1
+                or not all(mem.hybrid.spec.widths for mem in self.members)):
+            return None
+        bound = h.compiled.bind(p)
+        rows = p.shape[0]
+        r = rows // m
+        coef = self._coef(p)
+        reads, index = columns(h)
+
+        def drive(times: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            xs = inputs.at_each(times)  # (H, m·R, n_inputs)
+            d = bound.c.expand(xs.shape[0], *bound.c.shape)
+            if h.compiled.input_names:
+                d = d + torch.einsum("sij,hsj->hsi", bound.B, xs)
+            return d, self._first_layer(net, m, p, xs)[1]
+
+        wu = self._first_layer(net, m, p, inputs.values[:, :1].transpose(0, 1))[0]
+        return DriveForm(bound.A, drive, wu.transpose(1, 2), list(zip(net.weights[1:], net.biases[1:])),
+                         net.scale if coef is None else net.scale * coef.reciprocal().view(m, r, -1), reads, index,
+                         net.activations[0], m)
 
     def _adjoint(self, net: StackedNet, m: int, p: torch.Tensor, u0: torch.Tensor, plan: Shooting,
                  shared: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor | None:

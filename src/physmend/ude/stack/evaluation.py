@@ -13,8 +13,9 @@ import torch
 
 from physmend.problem import Problem
 from physmend.simulate import Batch
+from physmend.ude.fixed_step import applies, rk4_states
 from physmend.simulate.initial import estimate_initial
-from physmend.ude.metrics import LEAVE_MARGIN, evaluate_with, guarded, metrics_of
+from physmend.ude.metrics import LEAVE_MARGIN, evaluate_with, guarded, metrics_of, row_stops
 from physmend.ude.outcome import TrainingDiverged
 from physmend.ude.reference import clocked, simulate_with, with_stops
 from physmend.ude.stack.net import StackedNet, write_back_row
@@ -81,9 +82,11 @@ class StackEvaluation:
             driven = self._drive_table(net, m, p, rows.inputs)
             if driven is None:
                 states = simulate_with(guarded(self._rhs(net, m, p), limits, rows.ids, names), rows, u0, sim)
-            else:  # the same function with the input-dependent work done once per knot
-                states = simulate_with(guarded(driven[0], limits, rows.ids, names),
-                                       dataclasses.replace(rows, inputs=driven[1]), u0, with_stops(sim, rows))
+            else:  # by fixed-step RK4 where that is within tolerance, else the adaptive solve
+                states = self._fixed_step(net, m, p, rows, u0, sim, limits)
+                if states is None:  # the same function with the input-dependent work done once per knot
+                    states = simulate_with(guarded(driven[0], limits, rows.ids, names),
+                                           dataclasses.replace(rows, inputs=driven[1]), u0, with_stops(sim, rows))
             return self.problem.compiled.outputs(states, rows.inputs.at(rows.t), p[None])
 
         # declared-unknown initial values: each model's own estimates (a failed candidate solve is
@@ -94,6 +97,16 @@ class StackEvaluation:
         if any(batch_m.initial_ranges):
             self.initial_estimates[key] = u0  # the next checkpoint of these models starts about them
         return outputs(batch_m, u0)  # (T, M·B, k)
+
+    def _fixed_step(self, net: StackedNet, m: int, p: torch.Tensor, rows: Batch, u0: torch.Tensor, sim: dict[str, Any],
+                    limits: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor | None:
+        """States ``(T, m·R, n)`` of the rows by :func:`~physmend.ude.fixed_step.rk4_states` (each row
+        from the stops its own clock would take), or None where it does not apply
+        or does not agree within the solver's tolerances (the adaptive solve then decides)."""
+        form = self._form(net, m, p, rows.inputs)
+        if form is None or torch.is_grad_enabled() or not applies(sim, form.activation, u0.device):
+            return None
+        return rk4_states(form, u0, rows.t, row_stops(rows, sim), sim["rtol"], sim["atol"], limits)
 
     def _evaluate_alone(self, position: int, sim: dict[str, Any], problem: Problem
                         ) -> tuple[dict[str, float], torch.Tensor] | BaseException:

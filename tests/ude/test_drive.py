@@ -188,6 +188,7 @@ def test_the_stack_drive_table_gives_the_stack_checkpoints(user_project: Path, m
     net = stack.net.select(torch.tensor(positions))
     p = stack._parameters_for(ref.batch.params, None if stack.est_raw is None else stack.est_raw.detach(), stack.size)
     assert stack._drive_table(net, stack.size, p, ref.batch.take(torch.arange(ref.batch.size).repeat(stack.size)).inputs) is not None
+    monkeypatch.setattr(fixed_step, "LEVELS", 0)  # the adaptive solves compared (fixed steps: test_fixed_step.py)
     fast = stack.evaluate(positions, RODAS)
     monkeypatch.setattr(Stack, "_drive_table", lambda self, *a: None)
     slow = stack.evaluate(positions, RODAS)

@@ -32,9 +32,12 @@ def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # 
     for e in range(n):
         traj[0, r, e] = u0[r, e]
     for kk in range(steps + 1):
+        # the stage slots as plain integers: literal ones would compile _rhs a second time
+        s0 = kk - kk
+        s1, s2, s3 = s0 + 1, s0 + 2, s0 + 3
         for e in range(n):
             Vs[r, 0, e] = traj[kk, r, e]
-        _rhs(r, 0, 2 * kk, Vs, k1, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s0, 2 * kk, Vs, k1, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
         for e in range(n):
             slope[kk, r, e] = k1[e]
         if kk == steps:
@@ -42,13 +45,13 @@ def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # 
         h = hs[r, kk]
         for e in range(n):
             Vs[r, 1, e] = Vs[r, 0, e] + 0.5 * h * k1[e]
-        _rhs(r, 1, 2 * kk + 1, Vs, k2, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s1, 2 * kk + 1, Vs, k2, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
         for e in range(n):
             Vs[r, 2, e] = Vs[r, 0, e] + 0.5 * h * k2[e]
-        _rhs(r, 2, 2 * kk + 1, Vs, k3, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s2, 2 * kk + 1, Vs, k3, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
         for e in range(n):
             Vs[r, 3, e] = Vs[r, 0, e] + h * k3[e]
-        _rhs(r, 3, 2 * kk + 2, Vs, k4, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s3, 2 * kk + 2, Vs, k4, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
         h6 = h / 6.0
         for e in range(n):
             traj[kk + 1, r, e] = Vs[r, 0, e] + h6 * ((k1[e] + 2.0 * (k2[e] + k3[e])) + k4[e])

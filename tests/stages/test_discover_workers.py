@@ -20,6 +20,9 @@ from physmend.sweep.storage import WORKER_ATTR
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=20",
         "train.eval_every=10", "simulate.rtol=1e-6", "simulate.atol=1e-7", "ude.depth=1", "sweep.figures=false",
         "sweep.progress=false"]
+#: trials long enough that a worker started beside the sweep asks for its trial before the first process's
+#: first trial ends (the worker imports for seconds first, more under the suite's load on the other core)
+LONGER = [o if not o.startswith("train.epochs=") else "train.epochs=80" for o in TINY]
 
 
 def test_auto_is_the_cpus_at_most_the_first_trials() -> None:
@@ -51,7 +54,7 @@ def test_two_workers_train_the_trials_one_process_trains(
     conf = user_project / "my_conf"
     values, params = {}, {}
     for workers in (2, 1):
-        overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
+        overrides = [*LONGER, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
                      "sweep.group=1", f"sweep.workers={workers}", f"sweep.study_name=w{workers}"]
         early = standby.start(workers - 1)
         try:
@@ -72,7 +75,7 @@ def test_two_workers_train_the_trials_one_process_trains(
     assert params[2] == params[1] and params[1][0] != params[1][1]
     assert values[2] == pytest.approx(values[1], rel=1e-9)  # the same trials, trained alone either way
     # the trials a stack of two proposes (as discover's sweep did before its trials ran side by side)
-    overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
+    overrides = [*LONGER, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
                  "sweep.group=2", "sweep.group_shapes=false", "sweep.workers=1", "sweep.study_name=stack"]
     sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf, given_wins=True)
     stacked = optuna.load_study(study_name="stack", storage=f"sqlite:///{user_project / 'optuna.db'}").trials

@@ -6,6 +6,7 @@ study (the user's oscillator of tests/conftest.py, trials trained ten at a time)
 from __future__ import annotations
 
 from pathlib import Path
+import re
 
 import pytest
 
@@ -31,7 +32,9 @@ def test_a_20_trial_sweep_prints_under_60_lines(user_project: Path, monkeypatch:
     assert len(err.splitlines()) < 60, err
     assert f"{N_TRIALS} of {N_TRIALS} trials: {N_TRIALS} complete" in out and "best: trial" in out
     assert "not final" not in out and "so far" not in out  # one worker: its choice is final
-    assert "epoch 2/2" in err  # the bar counts epochs inside the trials, not only trials
+    # the bar counts epochs inside the trials, not only trials (which epoch it shows depends on when it
+    # redraws: at most every bar interval, and a stack's two epochs can take less than that)
+    assert re.search(r"trials? \d+(–\d+)? epoch \d/2", err), err
 
     # another worker's trial still runs (asked here, as that worker would, heartbeat fresh): a worker
     # that ends now prints what it found so far, never a final choice

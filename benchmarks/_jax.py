@@ -22,8 +22,9 @@ whole-trajectory ``evaluate`` decides, the stopping rule of the other methods (e
 reported apart). Not in the peer: physmend's warm start, learning-rate schedule, state box, L-BFGS
 polish and joint estimation of uncertain parameters (held at their declared values).
 
-JAX is a benchmark dependency only (``pip install .[bench]``). XLA is held to ``cfg.threads`` CPU
-threads (set before JAX is imported), as torch is for the other methods.
+JAX is a benchmark dependency only (``pip install .[bench]``). XLA gets as many CPU threads as torch
+does for the other methods (``cfg.threads`` resolved, set before JAX is imported: one thread, or XLA's
+own threading where that is every CPU).
 """
 
 from __future__ import annotations

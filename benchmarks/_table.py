@@ -125,7 +125,7 @@ def _ttacc_lines(res: dict[str, Any]) -> list[str]:
         f"  -> target val.rmse <= {res['target_rmse']:.4g} {p['unit']}  (val.rmse^2 <= 2 noise^2)",
         f"  evaluation every {t['eval_every']} epochs for both (physmend default {t['default_eval_every']}; patience "
         f"{t.get('physmend_patience', '-')} evals = same epochs); cap {t['cap_s']:.0f} s; median of {t['repeats']} repeat(s), "
-        "alternating a, b",
+        f"alternating a, b; {t.get('threads', 1)} thread(s) per method",
         "",
         f"  {'':<38}{'(a) torchdiffeq':<22}{'(b) physmend':<22}{'(c) JAX + diffrax' if c else ''}".rstrip(),
     ]

@@ -92,8 +92,9 @@ def one(args: argparse.Namespace) -> None:
     args.result.write_text(json.dumps(res, indent=1))
 
 
-def spawn(method: str, args: argparse.Namespace, noise: float, seed: int, count_flops: bool) -> dict[str, Any]:
-    """Run ``--one method`` in a fresh interpreter (1 torch/BLAS thread); its result, or why it has none."""
+def spawn(method: str, args: argparse.Namespace, noise: float, seed: int, count_flops: bool, threads: int = 1) -> dict[str, Any]:
+    """Run ``--one method`` in a fresh interpreter on ``threads`` threads (torch, BLAS and XLA alike: the
+    configuration's ``threads``, resolved); its result, or why it has none."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "result.json"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--one", method, "--noise", repr(noise), "--seed", str(seed),
@@ -101,7 +102,7 @@ def spawn(method: str, args: argparse.Namespace, noise: float, seed: int, count_
         cmd += [f"--override={o}" for o in args.override] + (["--count-flops"] if count_flops else [])
         from _jax import xla_flags
 
-        env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "XLA_FLAGS": xla_flags(1)}
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads), "XLA_FLAGS": xla_flags(threads)}
         t0 = time.perf_counter()
         try:
             proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=args.cap + 600)
@@ -127,7 +128,10 @@ def time_to_accuracy(args: argparse.Namespace, res: dict[str, Any]) -> None:
     from _trainer import with_eval_every
 
     cfg, problem = load(args.override)
+    from physmend.cpus import threads as thread_count
+
     noise = noise_floor(problem)
+    threads = thread_count(cfg.threads)  # every method on as many (the configuration's threads, resolved)
     target = Target(noise["pooled"])
     res.update(problem=problem_facts(problem), noise=noise, target_rmse=target.rmse)
     methods = [m for m in METHODS if m in args.methods.split(",")]
@@ -139,11 +143,11 @@ def time_to_accuracy(args: argparse.Namespace, res: dict[str, Any]) -> None:
     t = res["ttacc"] = {"repeats": args.repeats, "cap_s": args.cap, "eval_every": args.eval_every,
                         "default_eval_every": int(cfg.train.eval_every),
                         "physmend_patience": int(with_eval_every(cfg, args.eval_every).train.patience),
-                        "overrides": args.override, **{m: {"runs": []} for m in methods}}
+                        "overrides": args.override, "threads": threads, **{m: {"runs": []} for m in methods}}
     for r in range(args.repeats):
         for m in methods:
             print(f"[ttacc] repeat {r + 1}/{args.repeats}: {m} ...", file=sys.stderr, flush=True)
-            run = spawn(m, args, noise["pooled"], args.seed + r, count_flops=r == 0)
+            run = spawn(m, args, noise["pooled"], args.seed + r, count_flops=r == 0, threads=threads)
             t[m]["runs"].append(run)
             print(f"[ttacc]   {run.get('status')} after {run.get('wall_s', float('nan')):.1f} s, "
                   f"epoch {run.get('epochs', '-')}, val.rmse {run.get('final_val_rmse', float('nan')):.4g}", file=sys.stderr, flush=True)

@@ -4,6 +4,7 @@ lacks. Proves nothing in the pipeline is cargo-box specific."""
 
 from __future__ import annotations
 
+import os
 import textwrap
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,6 +13,9 @@ import numpy as np
 import pandas as pd
 import pytest
 import scipy.integrate
+
+# the suite runs one process per core: each trains on one thread (``threads: auto`` obeys OpenMP's variable)
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 MODEL_SOURCE = textwrap.dedent(
     '''

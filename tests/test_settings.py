@@ -81,7 +81,7 @@ def test_every_group_checks_its_keys_and_values() -> None:
                                       "'petab'], but got 'pdf'"),
              ("discover.group_shapes", "no", "discover.group_shapes must be true or false, but got 'no'"),
              ("tracking.uri", 3, "tracking.uri must be a word, but got 3"),
-             ("threads", 0, "threads must be a whole number ≥ 1, but got 0"),
+             ("threads", 0, "threads must be 'auto' or a whole number ≥ 1, but got 0"),
              ("device", "gpu", "device must be auto, cpu, cuda or cuda:N (N a device number), but got 'gpu'")]
     for key, value, message in cases:
         group, _, name = key.rpartition(".")

@@ -46,9 +46,11 @@ def load_problem(cfg: Any) -> Problem:
     """
     from physmend.data import load_experiments
 
+    from physmend.cpus import threads as thread_count
+
     top = group_settings(cfg, "")  # seed, threads, device: checked, their defaults conf/config.yaml's
-    threads = top.threads
-    if torch.get_num_threads() != threads:  # small solves: thread hand-off costs more than it saves
+    threads = thread_count(top.threads)  # torch's and the compiled training solve's (compiled_solve)
+    if torch.get_num_threads() != threads:
         torch.set_num_threads(threads)
     dtype = dtype_of(cfg)
     device = resolve_device(top.device)

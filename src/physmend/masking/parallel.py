@@ -58,6 +58,9 @@ def _packed(i: int) -> bytes:
     """In a forked child: retraining ``i`` of :data:`_JOB`, pickled without its model object."""
     assert _JOB is not None
     work, problem, train, sets = _JOB
+    import torch
+
+    torch.set_num_threads(1)  # one thread per retraining side by side (the loops' threaded twins are not forked into)
     result = retrain(work, problem, sets[i], train, position=i)
     if isinstance(result, BaseException):
         return pickle.dumps(result)

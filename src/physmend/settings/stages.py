@@ -30,7 +30,7 @@ class TopSettings(Group):
     GROUP: ClassVar[str] = ""
 
     seed: Annotated[Whole, Ge(0)]
-    threads: Count
+    threads: AutoCount  # auto: physmend.cpus.threads
     device: Device
 
 

@@ -80,6 +80,8 @@ def run_sweep(
     else:
         check_keys(space, cfg)
     problem = load_problem(cfg)
+    if settings.workers > 1:  # this process trains beside settings.workers - 1 others: its share of the CPUs
+        _share_threads(group_settings(cfg, "").threads, settings.workers)
     storage = open_storage(group_settings(cfg, "tracking").optuna_storage)
     store = _retry(lambda: open_store(cfg.tracking))
     if source_run_id:
@@ -105,6 +107,18 @@ def run_sweep(
             proc.wait()
         raise
     return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
+
+
+def _share_threads(setting: int | str, processes: int) -> None:
+    """Torch's (and the training solve's) threads for one of ``processes`` working side by side, where
+    ``threads`` is ``auto``; a number given stays as given."""
+    import torch
+
+    from physmend.cpus import threads
+
+    count = threads(setting, processes)
+    if torch.get_num_threads() != count:
+        torch.set_num_threads(count)
 
 
 def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:

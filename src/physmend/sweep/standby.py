@@ -20,7 +20,8 @@ from typing import Any
 
 
 def start(count: int) -> list[subprocess.Popen]:
-    """``count`` standby processes (one torch thread each), importing while this process goes on."""
+    """``count`` standby processes (one thread each while they import and compile; the sweep that hands
+    them their command line tells them their share of the CPUs), importing while this process goes on."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     return [subprocess.Popen([sys.executable, "-m", "physmend.sweep.standby"], env=env, stdin=subprocess.PIPE,
                              stdout=subprocess.DEVNULL, text=True) for _ in range(max(0, count))]

@@ -118,7 +118,7 @@ every choice of its space with its command line already (``probe_space``), so th
 
 def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[str], config_dir: str | Path | None,
                    given_wins: bool = False, standby: Sequence[Any] = ()) -> list[Any]:
-    """``count`` more ``physmend sweep`` processes on the same study (one torch thread each), started
+    """``count`` more ``physmend sweep`` processes on the same study (each told its share of the CPUs), started
     once this one has checked everything it was given: the ``standby`` processes first
     (:mod:`physmend.sweep.standby`, already importing), new ones for the rest."""
     if count < 1:
@@ -126,7 +126,9 @@ def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[st
     args = ["sweep", *([source_run_id] if source_run_id else []),
             *(["--config-dir", str(config_dir)] if config_dir is not None else []),
             *overrides, "sweep.workers=1", "sweep.progress=false"]
-    ours = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", GIVEN_WINS_ENV: "1" if given_wins else "0", PROBED_ENV: "1"}
+    share = str(threads("auto", count + 1))  # each process's share of the CPUs (threads: auto obeys it)
+    ours = {"OMP_NUM_THREADS": share, "MKL_NUM_THREADS": share, GIVEN_WINS_ENV: "1" if given_wins else "0", PROBED_ENV: "1"}
+    from physmend.cpus import threads
     from physmend.sweep import standby as waiting
 
     ready: list[Any] = []

@@ -72,3 +72,25 @@ def test_a_catalogue_form_that_is_one_value_along_the_samples_is_not_a_candidate
     texts = [c.text for c in catalogue_candidates(list(cols), {"rc.v": "V", "cell.i": "A"}, cols, y)]
     assert not any("sign(rc.v)" in t for t in texts), texts
     assert any("sign(cell.i)" in t for t in texts) and any("steady source" in t for t in texts)
+
+
+def test_the_screening_sends_the_best_of_each_smaller_count_of_constants_on(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A few steps favour forms with more constants: the simplest forms' best are re-fitted in full
+    whatever their screened rank; a count no better placed than the finalists' adds nothing."""
+    import math
+
+    import physmend.symbolic.choice as choice
+
+    monkeypatch.setattr(choice, "SCREEN_KEEP", 3)
+    n = 72.0
+    constants = [2, 3, 2, 1, 1, 2, 1]
+    screened = [3.0e-4, 2.9e-4, 3.1e-4, 5.0e-4, 4.0e-4, 3.3e-4, math.inf]
+
+    def bic(i: int, loss: float) -> float:
+        return n * math.log(loss) + constants[i] * math.log(n) if math.isfinite(loss) else math.inf
+
+    kept = choice.finalists_of(screened, constants, bic)
+    assert kept[:3] == sorted(range(3), key=lambda i: bic(i, screened[i]))  # the three best by the screening's BIC
+    assert kept[3:] == [4]  # and the best one-constant form (not the other, nor the one that failed)
+    # every finalist already has the fewest constants of its front: nothing joins
+    assert sorted(choice.finalists_of([3.0e-4, 2.9e-4, 3.1e-4, 9e-4], [1, 1, 1, 1], bic)) == [0, 1, 2]

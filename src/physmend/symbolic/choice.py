@@ -13,11 +13,6 @@ import sympy as sp
 from physmend.settings import SymbolicSettings
 from physmend.symbolic.corrected import corrected_problem, refit
 
-#: Levenberg–Marquardt steps at most for each candidate's constants in the 'simulated' choice (the
-#: re-fit of the chosen formula converges in a handful; this bounds the cost per candidate)
-SELECTION_REFIT_STEPS = 10
-
-
 def tree_size(expr: sp.Expr) -> int:
     """Nodes of the expression tree (comparable to a symbolic-regression back end's length)."""
     return sum(1 for _ in sp.preorder_traversal(expr))
@@ -108,9 +103,28 @@ def choose_by_recordings(rates: Any, state: str, front: Any) -> tuple[int, str, 
 
 
 #: the simulated choice screens a long front: every candidate re-fitted with SCREEN_STEPS
-#: Levenberg–Marquardt steps first, the SCREEN_KEEP best by that BIC then re-fitted in full
+#: Levenberg–Marquardt steps first, the SCREEN_KEEP best by that BIC (and the best of each smaller
+#: count of constants, :func:`finalists_of`) then re-fitted in full — as the chosen formula will be
+#: (``symbolic.refit_epochs``): a loss short of convergence favours the form with more constants
 SCREEN_STEPS = 3
 SCREEN_KEEP = 8
+
+
+def finalists_of(screened: list[float], constants: list[int], bic_of: Any) -> list[int]:
+    """The candidates a screening sends on to the full re-fit: the :data:`SCREEN_KEEP` best by the BIC
+    of their ``screened`` losses, and the best of every smaller count of ``constants`` than theirs.
+
+    A few steps from shared segment starts do not converge, and a form with more constants moves
+    further in them: the screening's BIC is biased towards them. The simplest forms' best are re-fitted
+    in full whatever that bias, so that the full re-fit's BIC judges whether a constant pays."""
+    order = sorted(range(len(screened)), key=lambda i: bic_of(i, screened[i]))
+    kept = order[:SCREEN_KEEP]
+    most = max((constants[i] for i in kept), default=0)
+    for k in sorted({constants[i] for i in order if constants[i] < most}):
+        best = next(i for i in order if constants[i] == k)
+        if best not in kept and np.isfinite(screened[best]):
+            kept.append(best)
+    return kept
 
 
 def _bar(items: Any, desc: str) -> Any:
@@ -121,7 +135,7 @@ def _bar(items: Any, desc: str) -> Any:
 
 
 def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build: Any,
-                         refit_steps: int = 0, *, reason: str | None = None) -> tuple[int, str]:
+                         refit_steps: int = 0, *, reason: str | None = None, guide: Any = None) -> tuple[int, str]:
     """The formula for ``state`` whose corrected *model* best reproduces the training records.
 
     Where a kept equation's state is not measured, no recorded mismatch exists for it and the
@@ -137,7 +151,9 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     the independent windows (``symbolic.window`` long) of the training records (the residuals of a
     misfit are correlated over a window: the samples are not independent). A candidate whose segments cannot be solved is out. Validation and
     test records decide nothing here. ``reason`` says why the simulation decides (default: the state
-    is not measured).
+    is not measured). ``guide``: the trained hybrid the formulas stand for; a long front's screening
+    starts every candidate's segments from its states (:func:`physmend.symbolic.refit.segment_guesses`),
+    else from the model as written's.
     """
     import dataclasses
 
@@ -154,17 +170,21 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     # the model as written, simulated once: the segments' plan, initial guesses and scales (a
     # candidate's own parameters — its constants — come with its own batch)
     base = reference(checkpoint_problem(problem), work, bounded=True)
-    shared: list[Any] = []  # the screening's segment-start guesses: the model as written's, made once
+    shared: list[Any] = []  # shared segment-start guesses (the guide's, else the model as written's), made once
+
+    def starts() -> Any:
+        if not shared:
+            shared.append(segment_guesses(checkpoint_problem(problem), work, base, guide))
+        return shared[0]
 
     def loss_of(i: int, steps: int, screening: bool = False) -> float:
         corrections = build(i)
         corrected = checkpoint_problem(corrected_problem(work, corrections))
         ref = dataclasses.replace(base, batch=make_batch(corrected.experiments, corrected.compiled, corrected.dtype))
         try:
-            if screening and not shared:
-                shared.append(segment_guesses(checkpoint_problem(problem), work, base))
+            # without a guide a finalist starts from its own forced records (a solve each)
             _, result = refit(work, corrected, ref, corrections, steps, uncertainty=False,
-                              starts=shared[0] if screening else None)
+                              starts=starts() if screening or guide is not None else None)
             loss = float(result.loss_after)
         except Exception:  # noqa: BLE001 - a candidate whose segments cannot be solved is out
             loss = float("inf")
@@ -179,7 +199,7 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
         # (from the segment starts of the model as written: a candidate's own start guesses cost a
         # forced solve each, the finalists get theirs)
         first = [loss_of(i, SCREEN_STEPS, screening=True) for i in _bar(range(count), f"symbolic: {state}, screening")]
-        finalists = sorted(range(count), key=lambda i: bic_of(i, first[i]))[:SCREEN_KEEP]
+        finalists = finalists_of(first, [n_constants(c.expr) for c in front.candidates], bic_of)
         losses = [float("inf")] * count
         for i in _bar(finalists, f"symbolic: {state}, finalists re-fitted"):
             losses[i] = loss_of(i, refit_steps)

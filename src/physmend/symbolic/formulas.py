@@ -103,8 +103,9 @@ def find_formulas(hybrid: Any, problem: Any, work: Any, sc: Any, traj: Any, *, k
         operators = operators_for(operators, {n: units[n] for n in data.x_names})
     found = equation_fronts(problem, data, kept, scale, sc, select=select, rates=rates, choices=choices,
                             operators=operators, seed=seed)
-    choose_unmeasured(work, problem, simulated, found, data, sc)
-    choose_on_short_record(work, problem, kept, found, data, rates, operators, sc)
+    # a long front's screening starts each candidate from the trained network's states (guide)
+    choose_unmeasured(work, problem, simulated, found, data, sc, guide=hybrid)
+    choose_on_short_record(work, problem, kept, found, data, rates, operators, sc, guide=hybrid)
     picks = found.picks
     dropped = drop_needless(work, problem, kept, simulated, choices, found.fronts, picks, columns, units, sc)
     kept = [s for s in kept if s not in dropped]

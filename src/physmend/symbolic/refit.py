@@ -246,11 +246,39 @@ class _Shooting:
                               shape=(r0.numel(), self.n_unknowns))
 
 
-def segment_guesses(problem: Any, cfg: Any, ref: Any) -> torch.Tensor:
-    """The initial guesses of the segment starts ``(S, n)`` that :func:`refit_constants` makes for
-    ``problem`` — to be shared, through ``starts``, by re-fits of models that differ only in a
-    correction (the same records, so the same segments)."""
-    return _Shooting(problem, cfg, ref, []).seg0
+def segment_guesses(problem: Any, cfg: Any, ref: Any, guide: Any = None) -> torch.Tensor:
+    """Initial guesses of the segment starts ``(S, n)`` of :func:`refit_constants` on ``problem`` — to
+    be shared, through ``starts``, by re-fits of models that differ only in a correction (the same
+    records, so the same segments).
+
+    Without ``guide``: the guesses :func:`refit_constants` makes for ``problem`` itself. With
+    ``guide``, a trained hybrid model of ``problem`` (the network the formulas stand for): its forced
+    records — measured states on their smoothed records, the hidden ones simulated with the network's
+    correction — or, where no output measures a state, its whole-trajectory simulation. A hidden state
+    of the model as written drifts by the missing term; the network's does not, so every candidate
+    formula starts its re-fit near the states it would reach, and a few steps compare forms rather
+    than how far each must first move its starts."""
+    shoot = _Shooting(problem, cfg, ref, [])
+    if guide is None:
+        return shoot.seg0
+    from physmend.ude.metrics import hybrid_states
+    from physmend.ude.outcome import TrainingDiverged
+    from physmend.ude.reference import solver_options
+    from physmend.ude.shooting import initial_segments
+    from physmend.ude.warmstart import forced_trajectories, segment_starts
+
+    plan = shoot.plan
+    with torch.no_grad():
+        forced = forced_trajectories(problem, ref.batch, guide, plan.dt)
+        if forced is not None:
+            return segment_starts(forced, plan.exp_index, plan.starts, shoot.seg0)
+        try:
+            states = hybrid_states(guide, problem, ref.batch, solver_options(cfg))
+        except TrainingDiverged:
+            return shoot.seg0
+    if not bool(torch.isfinite(states).all()):
+        return shoot.seg0
+    return initial_segments(problem, dataclasses.replace(ref, states=states), plan)
 
 
 def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, max_iterations: int = 50,

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import sympy as sp
 
-from physmend.symbolic.choice import MIN_RECORDED_WINDOWS, SELECTION_REFIT_STEPS, choose_by_simulation
+from physmend.symbolic.choice import MIN_RECORDED_WINDOWS, choose_by_simulation
 from physmend.symbolic.correction import correction_for
 from physmend.symbolic.fronts import Fronts
 from physmend.symbolic.targets import RegressionData
@@ -41,26 +41,29 @@ def recorded_shortlist(front: Any, scores: list[tuple[float, float]], windows: f
 
 
 def _steps(sc: Any) -> int:
-    """Levenberg–Marquardt steps per candidate of a choice by simulation."""
-    return min(int(sc.refit_epochs), SELECTION_REFIT_STEPS)
+    """Levenberg–Marquardt steps at most per candidate of a choice by simulation (a screened front's
+    finalists): as many as the chosen formula's re-fit (``symbolic.refit_epochs``), so that candidates
+    are compared at the losses they converge to — ten steps left a constant behind forms with two
+    that moved their segment starts faster, and chose a worse formula on held-out data."""
+    return int(sc.refit_epochs)
 
 
 def choose_unmeasured(work: Any, problem: Any, simulated: list[str], found: Fronts, data: RegressionData,
-                      sc: Any) -> None:
+                      sc: Any, guide: Any = None) -> None:
     """Pick (in ``found.picks``) the formula of each state of ``simulated`` (kept, not measured):
     each is judged in the corrected model with the other unmeasured ones' formulas; the measured
     equations' corrections come after (:func:`drop_needless`): a network may have split one term
-    between them."""
+    between them. ``guide``: the trained hybrid, whose states start every candidate's segments."""
     fronts, picks = found.fronts, found.picks
     for state in simulated:
         def build(i: int, state: str = state) -> list:
             return [correction_for(problem, s, fronts[s], *((i, "") if s == state else picks[s]), data.columns,
                                    data.units, sc, {}) for s in simulated]
-        picks[state] = choose_by_simulation(work, problem, state, fronts[state], build, _steps(sc))
+        picks[state] = choose_by_simulation(work, problem, state, fronts[state], build, _steps(sc), guide=guide)
 
 
 def choose_on_short_record(work: Any, problem: Any, kept: list[str], found: Fronts, data: RegressionData, rates: Any,
-                           operators: dict[str, Any] | None, sc: Any) -> None:
+                           operators: dict[str, Any] | None, sc: Any, guide: Any = None) -> None:
     """Where the training records give fewer than :data:`~physmend.symbolic.choice.MIN_RECORDED_WINDOWS`
     independent windows of recorded mismatch (a handful of window means), re-pick (in ``found``) the
     formula of each measured kept equation by the corrected model's simulation of every training
@@ -102,7 +105,7 @@ def choose_on_short_record(work: Any, problem: Any, kept: list[str], found: Fron
             reason=(f"the training records give only {windows:.0f} independent windows of recorded mismatch, fewer "
                     f"than {MIN_RECORDED_WINDOWS}: the formulas they rank best and the library's products and ratios, "
                     f"{len(shortlist)} in all, are put into the model, whose simulation of every training sample "
-                    "decides"))
+                    "decides"), guide=guide)
         if why.startswith("Rule 'simulated': no formula"):  # none could be solved: the recorded choice stands
             continue
         picks[state] = (shortlist[i], why.replace(f"chose index {i} (", f"chose index {shortlist[i]} ("))

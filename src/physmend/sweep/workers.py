@@ -126,10 +126,11 @@ def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[st
     args = ["sweep", *([source_run_id] if source_run_id else []),
             *(["--config-dir", str(config_dir)] if config_dir is not None else []),
             *overrides, "sweep.workers=1", "sweep.progress=false"]
-    share = str(threads("auto", count + 1))  # each process's share of the CPUs (threads: auto obeys it)
-    ours = {"OMP_NUM_THREADS": share, "MKL_NUM_THREADS": share, GIVEN_WINS_ENV: "1" if given_wins else "0", PROBED_ENV: "1"}
     from physmend.cpus import threads
     from physmend.sweep import standby as waiting
+
+    share = str(threads("auto", count + 1))  # each process's share of the CPUs (threads: auto obeys it)
+    ours = {"OMP_NUM_THREADS": share, "MKL_NUM_THREADS": share, GIVEN_WINS_ENV: "1" if given_wins else "0", PROBED_ENV: "1"}
 
     ready: list[Any] = []
     for proc in standby:

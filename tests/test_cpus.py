@@ -43,3 +43,16 @@ def test_loading_a_problem_sets_torch_to_the_resolved_count(monkeypatch: pytest.
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_a_process_working_beside_others_takes_its_share_until_it_is_alone_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    from physmend.cpus import side_by_side
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    cpus = usable_cpus()
+    with side_by_side(cpus):
+        assert threads("auto") == 1
+        with side_by_side(1):
+            assert threads("auto") == cpus
+        assert threads("auto") == 1 and threads(2) == 2
+    assert threads("auto") == cpus

@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 
 def usable_cpus() -> int:
@@ -18,15 +20,32 @@ def usable_cpus() -> int:
 SHARE_ENV = "OMP_NUM_THREADS"
 
 
-def threads(setting: int | str, side_by_side: int = 1) -> int:
+#: processes working at once, this one included, while :func:`side_by_side` holds (1: alone)
+_AT_ONCE = [1]
+
+
+@contextmanager
+def side_by_side(processes: int) -> Iterator[None]:
+    """Within: this process is one of ``processes`` working at once (a sweep's workers, or the ones
+    waiting to become them), so ``threads: auto`` is its share of the CPUs — also where a stage
+    loads a problem again (a trial's configuration) in the meantime."""
+    _AT_ONCE.append(max(1, int(processes)))
+    try:
+        yield
+    finally:
+        _AT_ONCE.pop()
+
+
+def threads(setting: int | str, side_by_side: int | None = None) -> int:
     """The top-level ``threads`` setting as a count of threads for this process: a count as given;
     ``auto``: this process's share of the CPUs it may use when ``side_by_side`` processes (itself
-    included) work at once — ``usable_cpus() // side_by_side`` — and at most ``OMP_NUM_THREADS`` where
-    that is set to a whole number (a worker process is told its share that way; so is a test
-    process). ≥ 1."""
+    included; default: as :func:`side_by_side` says, else 1) work at once — ``usable_cpus() //
+    side_by_side`` — and at most ``OMP_NUM_THREADS`` where that is set to a whole number (a worker
+    process is told its share that way; so is a test process). ≥ 1."""
     if str(setting) != "auto":
         return max(1, int(setting))
-    share = max(1, usable_cpus() // max(1, int(side_by_side)))
+    at_once = _AT_ONCE[-1] if side_by_side is None else side_by_side
+    share = max(1, usable_cpus() // max(1, int(at_once)))
     told = os.environ.get(SHARE_ENV, "").strip()
     if told.isdigit() and int(told) >= 1:
         share = min(share, int(told))

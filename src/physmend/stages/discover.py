@@ -73,6 +73,7 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     configuration, so one process runs the trials in turn; with ``sweep.group: 1`` each trial
     trains alone either way, so the trials are the same.
     """
+    from physmend.cpus import side_by_side
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
     from physmend.sweep import hydra_value, standby
 
@@ -90,11 +91,13 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
         clock = now
         print(banner.format(f"{number}/6 {name}"))
 
-    # the sweep's extra workers import while diagnose runs (physmend.sweep.standby)
+    # the sweep's extra workers import while diagnose runs (physmend.sweep.standby): this process
+    # works beside them from now on (threads: auto, its share of the CPUs)
     early = standby.start(int(cfg.sweep.workers) - 1) if overrides is not None else []
     try:
         stage(1, "diagnose")
-        ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
+        with side_by_side(len(early) + 1):
+            ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
         stage(2, "sweep")
         sweep_overrides = None
         given = {_key(o) for o in overrides or ()}

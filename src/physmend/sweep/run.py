@@ -56,6 +56,7 @@ def run_sweep(
     recorded FAIL where no restart finishes it; the sweep goes on. Ctrl-C records the
     running trial FAIL (its run KILLED) and re-raises ``KeyboardInterrupt``.
     """
+    from physmend.cpus import side_by_side
     from physmend.problem import load_problem
     from physmend.settings import group_settings
     from physmend.tracking import get_run, open_store
@@ -79,46 +80,35 @@ def run_sweep(
             probe_space(space, overrides, config_dir)
     else:
         check_keys(space, cfg)
-    problem = load_problem(cfg)
-    if settings.workers > 1:  # this process trains beside settings.workers - 1 others: its share of the CPUs
-        _share_threads(group_settings(cfg, "").threads, settings.workers)
-    storage = open_storage(group_settings(cfg, "tracking").optuna_storage)
-    store = _retry(lambda: open_store(cfg.tracking))
-    if source_run_id:
-        get_run(store, source_run_id)
-    study_name = settings.study_name or default_study_name(problem, cfg, space)
-    # everything checked: the other workers start now and set themselves up while this one opens the
-    # study (whichever process gets there first creates it, its first trials and the parent run)
-    helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir, given_wins, standby)
-    try:
-        study, created = _study(storage, study_name, settings, space, study_fingerprint(cfg, space))
-        tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
-        parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
-        configs = TrialConfigs(cfg, problem, overrides, config_dir)
-        if str(problem.device).startswith("cpu"):
-            from physmend.ude.adjoint import warm
+    # this process trains beside settings.workers - 1 others: threads: auto is its share of the CPUs,
+    # also where a trial's configuration loads its problem again
+    with side_by_side(settings.workers):
+        problem = load_problem(cfg)
+        storage = open_storage(group_settings(cfg, "tracking").optuna_storage)
+        store = _retry(lambda: open_store(cfg.tracking))
+        if source_run_id:
+            get_run(store, source_run_id)
+        study_name = settings.study_name or default_study_name(problem, cfg, space)
+        # everything checked: the other workers start now and set themselves up while this one opens the
+        # study (whichever process gets there first creates it, its first trials and the parent run)
+        helpers = _start_workers(settings.workers - 1, source_run_id, overrides or [], config_dir, given_wins, standby)
+        try:
+            study, created = _study(storage, study_name, settings, space, study_fingerprint(cfg, space))
+            tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
+            parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
+            configs = TrialConfigs(cfg, problem, overrides, config_dir)
+            if str(problem.device).startswith("cpu"):
+                from physmend.ude.adjoint import warm
 
-            # the training loops compiled (a fresh install) or read from numba's cache here, not inside
-            # the first trial: a Ctrl-C that lands in an import there is an ImportError, not an interrupt
-            warm(problem.dtype)
-    except BaseException:
-        for proc in helpers:  # they would meet the same trouble
-            proc.terminate()
-            proc.wait()
-        raise
-    return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
-
-
-def _share_threads(setting: int | str, processes: int) -> None:
-    """Torch's (and the training solve's) threads for one of ``processes`` working side by side, where
-    ``threads`` is ``auto``; a number given stays as given."""
-    import torch
-
-    from physmend.cpus import threads
-
-    count = threads(setting, processes)
-    if torch.get_num_threads() != count:
-        torch.set_num_threads(count)
+                # the training loops compiled (a fresh install) or read from numba's cache here, not inside
+                # the first trial: a Ctrl-C that lands in an import there is an ImportError, not an interrupt
+                warm(problem.dtype)
+        except BaseException:
+            for proc in helpers:  # they would meet the same trouble
+                proc.terminate()
+                proc.wait()
+            raise
+        return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
 
 
 def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:

@@ -151,9 +151,9 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
     the independent windows (``symbolic.window`` long) of the training records (the residuals of a
     misfit are correlated over a window: the samples are not independent). A candidate whose segments cannot be solved is out. Validation and
     test records decide nothing here. ``reason`` says why the simulation decides (default: the state
-    is not measured). ``guide``: the trained hybrid the formulas stand for; a long front's screening
-    starts every candidate's segments from its states (:func:`physmend.symbolic.refit.segment_guesses`),
-    else from the model as written's.
+    is not measured). ``guide``: the trained hybrid the formulas stand for; every re-fit starts its
+    segments from its states (:func:`physmend.symbolic.refit.segment_guesses`); without it, the
+    screening from the model as written's and each finalist from its own forced records.
     """
     import dataclasses
 
@@ -195,9 +195,8 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
 
     count = len(front.candidates)
     if count > SCREEN_KEEP and refit_steps > SCREEN_STEPS:
-        # screening: every candidate with a few steps, the best SCREEN_KEEP by that BIC re-fitted in full
-        # (from the segment starts of the model as written: a candidate's own start guesses cost a
-        # forced solve each, the finalists get theirs)
+        # screening: every candidate with a few steps from shared segment starts; the best SCREEN_KEEP by
+        # that BIC, and the best of each smaller count of constants, re-fitted in full (finalists_of)
         first = [loss_of(i, SCREEN_STEPS, screening=True) for i in _bar(range(count), f"symbolic: {state}, screening")]
         finalists = finalists_of(first, [n_constants(c.expr) for c in front.candidates], bic_of)
         losses = [float("inf")] * count
@@ -211,7 +210,8 @@ def choose_by_simulation(work: Any, problem: Any, state: str, front: Any, build:
                    "solved; index 0 (the simplest) is kept for the fallback along the front")
     pick = int(np.argmin(bic))
     c = front.candidates[pick]
-    screened = (f"; screened first with {SCREEN_STEPS} steps each, the best {SCREEN_KEEP} re-fitted in full"
+    screened = (f"; screened first with {SCREEN_STEPS} steps each, the best {SCREEN_KEEP} and the best of each "
+                "smaller count of constants re-fitted in full"
                 if count > SCREEN_KEEP and refit_steps > SCREEN_STEPS else "")
     reason = reason or f"{state} is not measured, so no recorded mismatch exists for it"
     unit_n = f"{n:.0f} independent windows of {window:.4g}"

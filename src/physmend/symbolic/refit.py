@@ -138,6 +138,13 @@ class _Shooting:
         self.h = 8.0 * math.sqrt(eps)  # relative forward-difference step
 
     # -- solving ------------------------------------------------------------------------------------
+    def offset_bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(lo, hi)``, each ``(F, n)``: the offsets ``v`` of the free segments whose starts stay within
+        their declared range (``∓inf`` where none is declared)."""
+        lo = (self.start_lo - self.seg0) / self.scale
+        hi = (self.start_hi - self.seg0) / self.scale
+        return lo[self.free], hi[self.free]
+
     def starts(self, v: torch.Tensor) -> torch.Tensor:
         """Segment starts ``(S, n)`` for offsets ``v (S, n)`` (first segments: the known initial state;
         a declared-unknown initial value within its range)."""
@@ -313,18 +320,18 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
         return RefitResult(start, loss, loss, 0, bool(math.isfinite(loss)))
     before, lam, it, converged = loss, 1e-3, 0, False
     free = shoot.free
+    v_lo, v_hi = shoot.offset_bounds()
     while it < max_iterations:
         J = shoot.jacobian(theta, v, solved)
         rn = r.numpy()
-        A = (J.T @ J).tocsc()
-        g = J.T @ rn
+        A, g = _held(shoot, v, (J.T @ J).tocsc(), J.T @ rn)
         D = sps.diags(np.maximum(A.diagonal(), 1e-12))
         accepted = False
         while lam < 1e10:
             step = torch.from_numpy(spla.spsolve((A + lam * D).tocsc(), -g)).to(theta.dtype)
             t_new = torch.minimum(torch.maximum(theta + step[:shoot.K], shoot.lo), shoot.hi)
             v_new = v.clone()
-            v_new[free] = v[free] + step[shoot.K:].reshape(shoot.F, shoot.n)
+            v_new[free] = torch.minimum(torch.maximum(v[free] + step[shoot.K:].reshape(shoot.F, shoot.n), v_lo), v_hi)
             r_new, solved_new = shoot.residuals(t_new, v_new)
             l_new = float(r_new @ r_new)
             if math.isfinite(l_new) and l_new < loss:
@@ -345,6 +352,24 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
     return RefitResult(dict(zip(shoot.names, theta.tolist())), before, loss, it, converged, stderr)
 
 
+def _held(shoot: _Shooting, v: torch.Tensor, A: Any, g: np.ndarray) -> tuple[Any, np.ndarray]:
+    """The normal equations ``A = JᵀJ``, ``g = Jᵀr`` with the offsets that cannot move this step held
+    (their rows and columns out, a unit diagonal, no gradient: a step of zero): an experiment's known
+    initial value in a segment that has an unknown one (its column is the start's effect on the
+    trajectory, but the start is not an unknown), and a start at a bound of its declared range whose
+    gradient points out of it. Left in, they predict gains the clamped step never makes, and the
+    damping grows until every step crawls."""
+    K = shoot.K
+    vf = v[shoot.free].reshape(-1).numpy()
+    lo, hi = (b.reshape(-1).numpy() for b in shoot.offset_bounds())
+    held = shoot.pinned[shoot.free].reshape(-1).numpy() | ((vf <= lo) & (g[K:] > 0)) | ((vf >= hi) & (g[K:] < 0))
+    if not held.any():
+        return A, g
+    hold = np.concatenate([np.zeros(K, dtype=bool), held])
+    keep = sps.diags((~hold).astype(float))
+    return (keep @ A @ keep + sps.diags(hold.astype(float))).tocsc(), np.where(hold, 0.0, g)
+
+
 def _standard_errors(shoot: _Shooting, theta: torch.Tensor, v: torch.Tensor, solved: Any, loss: float) -> dict[str, float]:
     """Standard errors of the constants: ``sqrt(s²·[(JᵀJ)⁻¹]_kk)`` at ``(θ, v)`` (see :class:`RefitResult`)."""
     import warnings
@@ -352,12 +377,15 @@ def _standard_errors(shoot: _Shooting, theta: torch.Tensor, v: torch.Tensor, sol
     J = shoot.jacobian(theta, v, solved)
     rows, unknowns = J.shape
     s2 = loss / max(rows - unknowns, 1)
+    pinned = np.concatenate([np.zeros(shoot.K, dtype=bool), shoot.pinned[shoot.free].reshape(-1).numpy()])
+    keep = sps.diags((~pinned).astype(float))  # a known initial value is not an unknown (see _held)
     rhs = np.zeros((unknowns, shoot.K))
     rhs[np.arange(shoot.K), np.arange(shoot.K)] = 1.0
     with warnings.catch_warnings():  # a singular JᵀJ: the constant is not pinned down (inf below)
         warnings.simplefilter("ignore")
         try:
-            cols = np.asarray(spla.spsolve((J.T @ J).tocsc(), rhs)).reshape(unknowns, shoot.K)
+            normal = (keep @ (J.T @ J) @ keep + sps.diags(pinned.astype(float))).tocsc()
+            cols = np.asarray(spla.spsolve(normal, rhs)).reshape(unknowns, shoot.K)
             var = np.diag(cols[:shoot.K]) * s2
         except (RuntimeError, ValueError):
             var = np.full(shoot.K, np.nan)

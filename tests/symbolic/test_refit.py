@@ -92,22 +92,32 @@ def test_refit_recovers_the_drag_constant(user_project: Path, monkeypatch: pytes
     assert one.iterations == 1 and not one.converged and one.loss_after < one.loss_before
 
 
-def test_an_unknown_initial_value_is_fitted_with_the_constants(user_project: Path,
-                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("low", [-0.3, 0.3])
+def test_an_unknown_initial_value_is_fitted_with_the_constants(user_project: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                low: float) -> None:
     """A start the data config declares unknown is an unknown of the fit, within its range: held at
-    its mid-range guess (a wrong start), the first segments would pull the constant off the truth."""
+    its mid-range guess (a wrong start), the first segments would pull the constant off the truth.
+    The training records start at rest: a range from -0.3 m/s holds the truth, one from 0.3 m/s does
+    not, and there the start stays at the bound nearest it (held out of the step, not pushed on)."""
     monkeypatch.chdir(user_project)
     data = user_project / "my_conf" / "data" / "oscillator.yaml"
     text = data.read_text()
-    for x0 in ("0.5", "-0.3"):  # the training records start at rest; declared unknown in [0.3, 1.5] m/s
-        text = text.replace(f"parameters: {{cart.x0: {x0}}}", f"parameters: {{cart.x0: {x0}}}\n    initial: {{cart.v: [0.3, 1.5]}}")
+    for x0 in ("0.5", "-0.3"):
+        text = text.replace(f"parameters: {{cart.x0: {x0}}}", f"parameters: {{cart.x0: {x0}}}\n    initial: {{cart.v: [{low}, 1.5]}}")
     data.write_text(text)
     cfg, corrections, problem, ref = _setup(user_project, -0.3)
     shoot = _Shooting(problem, cfg, ref, ["cart.v_c1"])
     first = shoot.plan.first
     assert bool((~shoot.pinned[first, 1]).all()) and bool(shoot.pinned[first, 0].all())  # v free, x known
     fitted, result = refit(cfg, problem, ref, corrections, 30)
-    assert abs(fitted[0].constants["c1"] + 0.9) < 0.05, (fitted[0].constants, result)
+    # converged well inside the step budget either way (a start pushed against its bound, or a
+    # known value left among the unknowns, made every step crawl)
+    assert result.converged and result.iterations < 15, result
+    c1 = fitted[0].constants["c1"]
+    if low < 0:  # the truth reached
+        assert abs(c1 + 0.9) < 0.01, (c1, result)
+    else:  # a start of 0.3 m/s, not 0: the constant makes up for part of it, and the fit is worse
+        assert -1.1 < c1 < -0.91 and result.loss_after > 10 * 6.1e-5, (c1, result)
 
 
 def test_constants_the_data_cannot_tell_apart_are_not_pinned_down(user_project: Path,

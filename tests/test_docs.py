@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 PAGES = [README, *sorted((ROOT / "docs").glob("*.md"))]
 MAX_README_LINES = 150
-MAIN_COMMAND = "python3 -m venv .venv && .venv/bin/pip install -q . && .venv/bin/physmend discover"
+MAIN_COMMAND = "python3 -m venv .venv && .venv/bin/pip install -q --no-compile . && .venv/bin/physmend discover"
 
 #: config groups whose keys the docs may name (conf/config.yaml's defaults)
 GROUPS = ("diagnose", "sweep", "mask", "sensitivity", "symbolic", "propose", "train", "ude", "simulate",

@@ -324,7 +324,7 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
     while it < max_iterations:
         J = shoot.jacobian(theta, v, solved)
         rn = r.numpy()
-        A, g = _held(shoot, v, (J.T @ J).tocsc(), J.T @ rn)
+        A, g = _held(shoot, v, (v_lo, v_hi), (J.T @ J).tocsc(), J.T @ rn)
         D = sps.diags(np.maximum(A.diagonal(), 1e-12))
         accepted = False
         while lam < 1e10:
@@ -352,22 +352,29 @@ def refit_constants(problem: Any, cfg: Any, ref: Any, names: Sequence[str], *, m
     return RefitResult(dict(zip(shoot.names, theta.tolist())), before, loss, it, converged, stderr)
 
 
-def _held(shoot: _Shooting, v: torch.Tensor, A: Any, g: np.ndarray) -> tuple[Any, np.ndarray]:
+def _held(shoot: _Shooting, v: torch.Tensor, bounds: tuple[torch.Tensor, torch.Tensor], A: Any,
+          g: np.ndarray) -> tuple[Any, np.ndarray]:
     """The normal equations ``A = JᵀJ``, ``g = Jᵀr`` with the offsets that cannot move this step held
-    (their rows and columns out, a unit diagonal, no gradient: a step of zero): an experiment's known
-    initial value in a segment that has an unknown one (its column is the start's effect on the
-    trajectory, but the start is not an unknown), and a start at a bound of its declared range whose
-    gradient points out of it. Left in, they predict gains the clamped step never makes, and the
+    (no gradient, a step of zero: :func:`_without`): an experiment's known initial value in a segment
+    that has an unknown one (its column is the start's effect on the trajectory, but the start is not
+    an unknown), and a start at a bound of its declared range (``bounds``, :meth:`_Shooting.offset_bounds`)
+    whose gradient points out of it. Left in, they predict gains the clamped step never makes, and the
     damping grows until every step crawls."""
     K = shoot.K
     vf = v[shoot.free].reshape(-1).numpy()
-    lo, hi = (b.reshape(-1).numpy() for b in shoot.offset_bounds())
+    lo, hi = (b.reshape(-1).numpy() for b in bounds)
     held = shoot.pinned[shoot.free].reshape(-1).numpy() | ((vf <= lo) & (g[K:] > 0)) | ((vf >= hi) & (g[K:] < 0))
     if not held.any():
         return A, g
     hold = np.concatenate([np.zeros(K, dtype=bool), held])
+    return _without(A, hold), np.where(hold, 0.0, g)
+
+
+def _without(A: Any, hold: np.ndarray) -> Any:
+    """``A`` (sparse, unknowns × unknowns) with the rows and columns where ``hold`` is True replaced by
+    those of the identity: those unknowns out of the linear system, which stays solvable."""
     keep = sps.diags((~hold).astype(float))
-    return (keep @ A @ keep + sps.diags(hold.astype(float))).tocsc(), np.where(hold, 0.0, g)
+    return (keep @ A @ keep + sps.diags(hold.astype(float))).tocsc()
 
 
 def _standard_errors(shoot: _Shooting, theta: torch.Tensor, v: torch.Tensor, solved: Any, loss: float) -> dict[str, float]:
@@ -377,15 +384,14 @@ def _standard_errors(shoot: _Shooting, theta: torch.Tensor, v: torch.Tensor, sol
     J = shoot.jacobian(theta, v, solved)
     rows, unknowns = J.shape
     s2 = loss / max(rows - unknowns, 1)
+    # a known initial value is not an unknown (see _held)
     pinned = np.concatenate([np.zeros(shoot.K, dtype=bool), shoot.pinned[shoot.free].reshape(-1).numpy()])
-    keep = sps.diags((~pinned).astype(float))  # a known initial value is not an unknown (see _held)
     rhs = np.zeros((unknowns, shoot.K))
     rhs[np.arange(shoot.K), np.arange(shoot.K)] = 1.0
     with warnings.catch_warnings():  # a singular JᵀJ: the constant is not pinned down (inf below)
         warnings.simplefilter("ignore")
         try:
-            normal = (keep @ (J.T @ J) @ keep + sps.diags(pinned.astype(float))).tocsc()
-            cols = np.asarray(spla.spsolve(normal, rhs)).reshape(unknowns, shoot.K)
+            cols = np.asarray(spla.spsolve(_without(J.T @ J, pinned), rhs)).reshape(unknowns, shoot.K)
             var = np.diag(cols[:shoot.K]) * s2
         except (RuntimeError, ValueError):
             var = np.full(shoot.K, np.nan)

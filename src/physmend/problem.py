@@ -10,6 +10,7 @@ import torch
 
 from physmend.device import CPU, resolve_device
 from physmend.modeling import CompiledModel, SimplifiedModel, compile_model, load_model
+from physmend.modeling.model import Model
 from physmend.settings import SimulateSettings, group_settings
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -54,15 +55,60 @@ def load_problem(cfg: Any) -> Problem:
         torch.set_num_threads(threads)
     dtype = dtype_of(cfg)
     device = resolve_device(top.device)
-    model = load_model(str(cfg.model.builder), cfg.model.get("options") or {}, cfg.model.get("corrections")).simplify()
+    model, compiled = simplified_and_compiled(
+        load_model(str(cfg.model.builder), cfg.model.get("options") or {}, cfg.model.get("corrections")))
     experiments = load_experiments(cfg.data, model, dtype=SimulateSettings.build(cfg.simulate).dtype)
     from physmend.data.config import time_unit_of
     from physmend.data.sanity import check_sampling
 
-    problem = Problem(model=model, compiled=compile_model(model), experiments=experiments, dtype=dtype,
+    problem = Problem(model=model, compiled=compiled, experiments=experiments, dtype=dtype,
                       time_unit=time_unit_of(cfg.data), device=device)
     check_sampling(experiments, cfg.simulate, time_unit=problem.time_unit, fastest=lambda: _fastest(problem))
     return problem
+
+
+#: simplified and compiled models of this process, by the whole model as built (:func:`model_text`),
+#: the most recently used last: a model built again with the same equations (every stage of
+#: ``physmend discover`` builds the user's model) is not simplified and compiled again (seconds for
+#: tens of states); a model file edited in between builds other equations and is compiled anew
+_COMPILED: dict[str, tuple[SimplifiedModel, CompiledModel]] = {}
+_COMPILED_KEPT = 4
+
+
+def model_text(model: Model) -> str:
+    """Everything of ``model`` as canonical text: every field of every declaration, each sympy
+    expression as :func:`sympy.srepr` (symbols with their assumptions), dictionaries in key order."""
+    import dataclasses
+
+    import sympy as sp
+
+    def text(obj: Any) -> str:
+        if isinstance(obj, sp.Basic):
+            return sp.srepr(obj)
+        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            return type(obj).__name__ + "(" + ",".join(f"{f.name}={text(getattr(obj, f.name))}"
+                                                        for f in dataclasses.fields(obj)) + ")"
+        if isinstance(obj, dict):
+            return "{" + ",".join(f"{text(k)}:{text(v)}" for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))) + "}"
+        if isinstance(obj, (list, tuple)):
+            return "[" + ",".join(text(v) for v in obj) + "]"
+        return repr(obj)
+
+    return text(model)
+
+
+def simplified_and_compiled(model: Model) -> tuple[SimplifiedModel, CompiledModel]:
+    """``model`` simplified and compiled (:func:`compile_model`), or what this process made of a
+    model with the same :func:`model_text` (they are never modified once made)."""
+    key = model_text(model)
+    made = _COMPILED.pop(key, None)
+    if made is None:
+        simplified = model.simplify()
+        made = (simplified, compile_model(simplified))
+    _COMPILED[key] = made
+    while len(_COMPILED) > _COMPILED_KEPT:
+        _COMPILED.pop(next(iter(_COMPILED)))
+    return made
 
 
 def _fastest(problem: Problem) -> float:

@@ -165,3 +165,39 @@ def test_a_stored_formula_with_each_function_is_read_back_by_the_restricted_pars
     assert sp.simplify(back - term) == 0 or back == term, (term, back)
     assert parse_safe("abs(0.5*u) ^ 1.37", {"u": u}) == sp.Abs(0.5 * u) ** sp.Float(1.37)  # pyoperon's powabs
     assert parse_safe("powabs(u, 1.37)", {"u": u}) == sp.Abs(u) ** sp.Float(1.37)
+
+
+def test_a_rows_affine_terms_stay_in_the_matrices_and_only_its_other_terms_are_evaluated_apart() -> None:
+    m = Model("mixed")
+    a = m.state("a", start=1.0)
+    b = m.state("b", start=0.5)
+    c = m.state("c", start=0.1)  # in no nonlinear term: the remainder does not take it
+    x = m.input("x")
+    k, q = m.parameter("k", 0.7), m.parameter("q", 2.0)
+    m.equation(m.der(a), -k * a + 3.0 * x + q * a * b - sp.sqrt(sp.Abs(b)) / q + 1.5, owner="a")
+    m.equation(m.der(b), -q * b + c, owner="b")
+    m.equation(m.der(c), -c + x, owner="c")
+    m.output("a", a)
+    compiled = compile_model(m.simplify())
+    split = compiled._affine
+    assert split is not None and split.nonlinear == [0] and not compiled.affine
+    assert split.rest_args == ([0, 1], [], [1])  # a, b and q: not c, x, k
+    p = torch.tensor([[0.7, 2.0], [1.1, 0.5]], dtype=torch.float64)
+    bound = compiled.bind(p)
+    # the affine part of the nonlinear row is in A, B and c: -k on a, 3 on x, 1.5
+    assert bound.A[:, 0].tolist() == [[-0.7, 0.0, 0.0], [-1.1, 0.0, 0.0]]
+    assert bound.B[:, 0, 0].tolist() == [3.0, 3.0] and bound.c[:, 0].tolist() == [1.5, 1.5]
+    u = torch.tensor([[0.3, -1.2, 0.4], [1.5, 0.8, -0.2]], dtype=torch.float64)
+    xs = torch.tensor([[0.9], [-0.4]], dtype=torch.float64)
+    for uu, xx in ((u, xs), (u.expand(4, -1, -1), xs.expand(4, -1, -1))):  # a step, and a whole trajectory
+        np.testing.assert_allclose(bound(uu, xx).numpy(), compiled.rhs(uu, xx, p.expand(*uu.shape[:-1], -1)).numpy(),
+                                   rtol=1e-14, atol=1e-14)
+    want = [-k0 * a0 + 3.0 * x0 + q0 * a0 * b0 - abs(b0) ** 0.5 / q0 + 1.5
+            for (k0, q0), (a0, b0, _), (x0,) in zip(p.tolist(), u.tolist(), xs.tolist())]
+    np.testing.assert_allclose(bound(u, xs)[:, 0].numpy(), want, rtol=1e-14)
+    # gradients reach the parameters through both parts
+    pg = p.clone().requires_grad_(True)
+    compiled.bind(pg)(u, xs)[:, 0].sum().backward()
+    want_dk = [-a0 for a0, _, _ in u.tolist()]
+    want_dq = [a0 * b0 + abs(b0) ** 0.5 / q0**2 for (_, q0), (a0, b0, _) in zip(p.tolist(), u.tolist())]
+    np.testing.assert_allclose(pg.grad.numpy(), np.array([want_dk, want_dq]).T, rtol=1e-12)

@@ -133,8 +133,10 @@ class AffineSplit:
 
     The flat entries are A row-major, then B, then c: ``constant`` holds every entry that does not
     depend on the parameters (most are zeros), ``coeffs(p)`` returns the others, at the flat
-    positions ``varying``. Rows listed in ``nonlinear`` are evaluated by ``rest`` instead (their A,
-    B, c entries are zero).
+    positions ``varying``. Rows listed in ``nonlinear`` also have terms that are not affine in
+    states and inputs (``x·y``, ``sqrt(x)``): ``rest`` evaluates those terms only, added to the
+    row's affine part (a correction added to a large equation costs the correction, not the
+    equation).
     """
 
     n_states: int
@@ -144,6 +146,8 @@ class AffineSplit:
     rest: Callable[..., list] | None
     constant: list[float] = field(default_factory=list)
     varying: list[int] = field(default_factory=list)
+    #: the states, inputs and parameters ``rest`` takes, by index (it takes only those its terms use)
+    rest_args: tuple[list[int], list[int], list[int]] = ([], [], [])
     _tensors: dict[Any, tuple[torch.Tensor, torch.Tensor]] = field(default_factory=dict, repr=False)
 
     def flat(self, p: torch.Tensor) -> torch.Tensor:
@@ -160,32 +164,42 @@ class AffineSplit:
         return base.index_copy(-1, where, _stack(self.coeffs(*p.unbind(-1)), like))
 
 
+def _linear_in(term: sp.Expr, ux: set) -> bool:
+    """True when ``term`` is ``k(p)·s`` for one state or input ``s`` or a sum of such (``k`` free of ``ux``)."""
+    return not any(sp.diff(term, s).free_symbols & ux for s in term.free_symbols & ux)
+
+
 def _affine_split(model: SimplifiedModel, u: list, x: list, p: list) -> AffineSplit:
     n, m = len(u), len(x)
     ux = set(u) | set(x)
     entries: list[sp.Expr] = [sp.Integer(0)] * (n * n + n * m + n)
     nonlinear: list[int] = []
+    remainders: list[sp.Expr] = []
     for i, name in enumerate(model.state_names):
         e = sp.expand(model.rhs[name]) if model.rhs[name].count_ops() < 400 else model.rhs[name]
-        row_a = [sp.diff(e, s) for s in u]
-        row_b = [sp.diff(e, s) for s in x]
-        if any(c.free_symbols & ux for c in row_a + row_b):
+        terms = sp.Add.make_args(e)
+        rest = [t for t in terms if not _linear_in(t, ux)]
+        if rest:  # the terms affine in states and inputs stay in A, B, c; ``rest`` adds the others
             nonlinear.append(i)
-            continue
-        const = e.xreplace({s: 0 for s in ux})
-        for j, c in enumerate(row_a):
-            entries[i * n + j] = c
-        for k, c in enumerate(row_b):
-            entries[n * n + i * m + k] = c
-        entries[n * n + n * m + i] = const
+            remainders.append(sp.Add(*rest))
+            e = sp.Add(*[t for t in terms if t not in rest])
+        for j, s in enumerate(u):
+            entries[i * n + j] = sp.diff(e, s)
+        for k, s in enumerate(x):
+            entries[n * n + i * m + k] = sp.diff(e, s)
+        entries[n * n + n * m + i] = e.xreplace({s: 0 for s in ux})
     entries = [sp.sympify(e) for e in entries]
     constant = [float(e) if e.is_number and e.is_real else 0.0 for e in entries]
     varying = [k for k, e in enumerate(entries) if not (e.is_number and e.is_real)]
     coeffs = lambdify_torch(p, [entries[k] for k in varying], f"model {model.name!r} affine coefficients")
-    rest = None
+    used = set().union(*(r.free_symbols for r in remainders)) if remainders else set()
+    picks = ([j for j, s in enumerate(u) if s in used], [k for k, s in enumerate(x) if s in used],
+             [k for k, s in enumerate(p) if s in used])
+    rest_fn = None
     if nonlinear:
-        rest = lambdify_torch(u + x + p, [model.rhs[model.state_names[i]] for i in nonlinear], f"model {model.name!r} derivatives")
-    return AffineSplit(n, m, coeffs, nonlinear, rest, constant, varying)
+        args = [u[j] for j in picks[0]] + [x[k] for k in picks[1]] + [p[k] for k in picks[2]]
+        rest_fn = lambdify_torch(args, remainders, f"model {model.name!r} derivatives")
+    return AffineSplit(n, m, coeffs, nonlinear, rest_fn, constant, varying, picks)
 
 
 class BoundRhs:
@@ -230,6 +244,7 @@ class BoundRhs:
             A, B, c, p = A[rows], B[rows], c[rows], p[rows]
         self.A, self.B, self.c, self.p = A, B, c, p
         self.split = split
+        self._rest_p = p[..., split.rest_args[2]].unbind(-1) if split.rest is not None else ()
 
     def linear(self, u: torch.Tensor) -> torch.Tensor:
         """``A·u`` for ``u (..., B, n)``: ``(..., B, n)``."""
@@ -261,8 +276,9 @@ class BoundRhs:
             su, sx, sp_ = u.shape[:-1], x.shape[:-1], self.p.shape[:-1]
             lead = su if su == sx == sp_ else torch.broadcast_shapes(su, sx, sp_)
             like = u.new_zeros(lead)
-            vals = _stack(self.split.rest(*u.unbind(-1), *x.unbind(-1), *self.p.unbind(-1)), like)
-            du = _scatter(du, vals, self.split.nonlinear)
+            iu, ix, _ = self.split.rest_args
+            vals = _stack(self.split.rest(*u[..., iu].unbind(-1), *x[..., ix].unbind(-1), *self._rest_p), like)
+            du = _scatter_add(du, vals, self.split.nonlinear)
         return du
 
 
@@ -275,9 +291,9 @@ def _matvec(a: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return torch.einsum("...ij,...j->...i", a, v)
 
 
-def _scatter(du: torch.Tensor, vals: torch.Tensor, rows: list[int]) -> torch.Tensor:
+def _scatter_add(du: torch.Tensor, vals: torch.Tensor, rows: list[int]) -> torch.Tensor:
     du = du.expand(*vals.shape[:-1], du.shape[-1]).clone() if du.shape[:-1] != vals.shape[:-1] else du.clone()
-    du[..., rows] = vals
+    du[..., rows] += vals
     return du
 
 

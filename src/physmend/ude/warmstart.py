@@ -227,11 +227,12 @@ def fit_models(problem: Problem, forced: Forced, corrected: Sequence[int], *, mo
     opt = torch.optim.Adam(list(params), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=iterations)
     loss = torch.zeros(m)
+    fixed = None if parameters().requires_grad else mismatch(parameters())  # no parameter estimated: one physics evaluation
     for _ in range(iterations):
         opt.zero_grad(set_to_none=True)
         p = parameters()
         corr = corrections(u, x, p)
-        res = by_model(box(corr[..., meas_cols] - mismatch(p))) / r_scale
+        res = by_model(box(corr[..., meas_cols] - (mismatch(p) if fixed is None else fixed))) / r_scale
         loss = per_model((res**2 * vm).flatten(1, 2)) / (count * len(meas_cols))
         if hidden_cols:
             hidden = (corr[..., hidden_cols] / typical[:, hidden_cols]) ** 2 * v_point

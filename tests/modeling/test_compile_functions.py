@@ -201,3 +201,17 @@ def test_a_rows_affine_terms_stay_in_the_matrices_and_only_its_other_terms_are_e
     want_dk = [-a0 for a0, _, _ in u.tolist()]
     want_dq = [a0 * b0 + abs(b0) ** 0.5 / q0**2 for (_, q0), (a0, b0, _) in zip(p.tolist(), u.tolist())]
     np.testing.assert_allclose(pg.grad.numpy(), np.array([want_dk, want_dq]).T, rtol=1e-12)
+
+
+def test_a_bound_nonlinear_physics_serves_several_backward_passes() -> None:
+    m = Model("twice")
+    a = m.state("a", start=1.0)
+    q = m.parameter("q", 2.0)
+    m.equation(m.der(a), -a + q * a * a, owner="a")
+    m.output("a", a)
+    compiled = compile_model(m.simplify())
+    p = torch.tensor([[2.0]], dtype=torch.float64, requires_grad=True)
+    bound = compiled.bind(p)
+    for value in (0.5, -1.5):  # one bound physics, two losses, two backward passes
+        bound(torch.tensor([[value]], dtype=torch.float64), torch.zeros(1, 0, dtype=torch.float64)).sum().backward()
+    assert p.grad is not None and float(p.grad) == pytest.approx(0.5**2 + 1.5**2)

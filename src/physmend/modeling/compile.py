@@ -244,7 +244,9 @@ class BoundRhs:
             A, B, c, p = A[rows], B[rows], c[rows], p[rows]
         self.A, self.B, self.c, self.p = A, B, c, p
         self.split = split
-        self._rest_p = p[..., split.rest_args[2]].unbind(-1) if split.rest is not None else ()
+        # the remainder's parameter columns, taken once (per call where they carry a gradient: a
+        # bound physics may serve several backward passes, each needing its own graph)
+        self._rest_p = p[..., split.rest_args[2]].unbind(-1) if split.rest is not None and not p.requires_grad else None
 
     def linear(self, u: torch.Tensor) -> torch.Tensor:
         """``A·u`` for ``u (..., B, n)``: ``(..., B, n)``."""
@@ -276,8 +278,9 @@ class BoundRhs:
             su, sx, sp_ = u.shape[:-1], x.shape[:-1], self.p.shape[:-1]
             lead = su if su == sx == sp_ else torch.broadcast_shapes(su, sx, sp_)
             like = u.new_zeros(lead)
-            iu, ix, _ = self.split.rest_args
-            vals = _stack(self.split.rest(*u[..., iu].unbind(-1), *x[..., ix].unbind(-1), *self._rest_p), like)
+            iu, ix, ip = self.split.rest_args
+            rest_p = self._rest_p if self._rest_p is not None else self.p[..., ip].unbind(-1)
+            vals = _stack(self.split.rest(*u[..., iu].unbind(-1), *x[..., ix].unbind(-1), *rest_p), like)
             du = _scatter_add(du, vals, self.split.nonlinear)
         return du
 

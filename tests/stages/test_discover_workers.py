@@ -6,6 +6,7 @@ in a temporary folder."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import optuna
@@ -20,9 +21,32 @@ from physmend.sweep.storage import WORKER_ATTR
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=20",
         "train.eval_every=10", "simulate.rtol=1e-6", "simulate.atol=1e-7", "ude.depth=1", "sweep.figures=false",
         "sweep.progress=false"]
-#: trials long enough that a worker started beside the sweep asks for its trial before the first process's
-#: first trial ends (the worker imports for seconds first, more under the suite's load on the other core)
 LONGER = [o if not o.startswith("train.epochs=") else "train.epochs=80" for o in TINY]
+
+
+def _ready(procs: list, settle: float = 0.5, limit: float = 120.0) -> None:
+    """Wait until every standby process of ``procs`` has imported and waits for its command line (no
+    CPU time for ``settle`` s), as discover's have by its sweep (they import while diagnose runs): the
+    first process's first trial would otherwise race a worker still importing under the suite's load."""
+    for proc in procs:
+        stat = Path(f"/proc/{proc.pid}/stat")
+        if not stat.exists():  # no /proc: a worker's imports take seconds
+            time.sleep(15.0)
+            continue
+
+        def cpu() -> int:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            return int(fields[11]) + int(fields[12])  # utime + stime, clock ticks
+
+        start = last_change = time.monotonic()
+        last = cpu()
+        while time.monotonic() - start < limit and proc.poll() is None:
+            time.sleep(0.1)
+            now = cpu()
+            if now != last:
+                last, last_change = now, time.monotonic()
+            elif time.monotonic() - last_change >= settle:
+                break
 
 
 def test_auto_is_the_cpus_at_most_the_first_trials() -> None:
@@ -58,6 +82,7 @@ def test_two_workers_train_the_trials_one_process_trains(
                      "sweep.group=1", f"sweep.workers={workers}", f"sweep.study_name=w{workers}"]
         early = standby.start(workers - 1)
         try:
+            _ready(early)
             sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
                       given_wins=True, standby=early)
         finally:

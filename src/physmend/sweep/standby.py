@@ -7,7 +7,9 @@ by the process that started it (:func:`physmend.sweep.workers._start_workers`) �
 ``physmend discover`` starts its sweep's extra workers this way before its diagnose stage, so that
 they train from the moment the sweep asks for them instead of importing first (about 5 s of a
 worker's start on 2 cores; 12 s where nothing is byte-compiled yet), and compile the training
-solve's loops if nothing has yet (12–14 s, once per installation).
+solve's loops if nothing has yet (12–17 s, once per installation) before its other imports, so
+that the main process finds them in numba's cache when its sweep starts
+(:mod:`physmend.ude.compile_lock`).
 """
 
 from __future__ import annotations
@@ -65,11 +67,13 @@ PRELOAD = ("physmend.cli", "physmend.api.functions", "physmend.stages.sweep", "p
 def _wait_and_run() -> int:
     import importlib
 
-    for name in PRELOAD:
-        importlib.import_module(name)
     from physmend.ude.adjoint import warm
 
-    warm()  # the training loops compiled (seconds, once per installation; then read from numba's cache)
+    # the training loops first (seconds, once per installation; then read from numba's cache): the
+    # process that started this one waits for them when its sweep starts, and reads the cache then
+    warm()
+    for name in PRELOAD:
+        importlib.import_module(name)
     line = sys.stdin.readline()
     if not line.strip():
         return 0  # released unused

@@ -292,7 +292,11 @@ def hybrid_solve(hybrid: HybridModel, p: torch.Tensor, u0: torch.Tensor, plan: S
 def warm(dtype: torch.dtype = torch.float64) -> None:
     """Compile the loops (the training solve's and :mod:`physmend.ude.rk4_steps`') for ``dtype`` (or load them from numba's cache beside the module) with a
     solve of a few numbers: the first compilation takes seconds, so a process that will train
-    later does it while it would otherwise wait."""
+    later does it while it would otherwise wait. Where another process is compiling them (discover's
+    standby worker), this one waits for it and then reads its cache (:mod:`physmend.ude.compile_lock`)."""
+    from physmend.ude import rk4_loops
+    from physmend.ude.compile_lock import compiling
+
     g = torch.Generator().manual_seed(0)
     u0, A, d, pre, wu, w, b, gain = (torch.randn(*s, dtype=dtype, generator=g).requires_grad_()
                                      for s in ((2, 2), (2, 2, 2), (3, 2, 2), (3, 1, 2, 3), (1, 2, 3), (1, 3, 2), (1, 1, 2), (1, 2, 2)))
@@ -300,13 +304,14 @@ def warm(dtype: torch.dtype = torch.float64) -> None:
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        traj = rk4_adjoint(u0, A, d, pre, wu, [(w, b)], gain, h=0.1, steps=1, activation="tanh", box=box)
-        traj.sum().backward()
-        if LOOPS["compiled"]:  # and the whole-trajectory loop (physmend.ude.fixed_step)
-            from physmend.ude.fixed_step import DriveForm, _solve
+        with compiling(rk4_loops.__file__):
+            traj = rk4_adjoint(u0, A, d, pre, wu, [(w, b)], gain, h=0.1, steps=1, activation="tanh", box=box)
+            traj.sum().backward()
+            if LOOPS["compiled"]:  # and the whole-trajectory loop (physmend.ude.fixed_step)
+                from physmend.ude.fixed_step import DriveForm, _solve
 
-            with torch.no_grad():
-                form = DriveForm(A, lambda times: (d, pre), wu, [(w, b)], gain, None, None, "tanh", 1)
-                _solve(form, u0, torch.tensor([[0.0, 0.1], [0.0, 0.1]], dtype=dtype))
+                with torch.no_grad():
+                    form = DriveForm(A, lambda times: (d, pre), wu, [(w, b)], gain, None, None, "tanh", 1)
+                    _solve(form, u0, torch.tensor([[0.0, 0.1], [0.0, 0.1]], dtype=dtype))
     finally:
         torch.set_num_threads(threads)

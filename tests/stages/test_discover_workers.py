@@ -160,3 +160,32 @@ def test_a_budgeted_sweep_of_single_trials_enqueues_its_minimum_proposed_togethe
     three = waiting("sweep.budget=60", "sweep.n_trials=2", "sweep.group=1", name="two")
     assert len(three) == 3 and [p["ude.width"] for p in three] == [8, 32, 16]  # every first trial kept
     assert waiting("sweep.n_trials=4", "sweep.group=1", name="count") == [dict(t) for t in space.first_trials]
+
+
+@pytest.mark.slow
+def test_after_the_budget_s_decision_every_worker_runs_its_share(
+        user_project: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Two workers, a minimum of two trials and a budget that allows two more: the worker whose first
+    trial ends first waits for the decision (it comes when the other's ends) instead of leaving the
+    two more to the other worker, so they run side by side, one in each process."""
+    from physmend.stages import sweep
+    from physmend.sweep import standby
+
+    monkeypatch.chdir(user_project)
+    conf = user_project / "my_conf"
+    overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=4", "sweep.budget=100000",
+                 "sweep.group=1", "sweep.workers=2", "sweep.pruner=none", "sweep.study_name=rounds"]
+    early = standby.start(1)
+    try:
+        _ready(early)
+        sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
+                  given_wins=True, standby=early)
+    finally:
+        standby.release(early)
+    assert "ended with exit status" not in capsys.readouterr().err
+    trials = optuna.load_study(study_name="rounds", storage=f"sqlite:///{user_project / 'optuna.db'}").trials
+    assert [t.state.name for t in trials] == ["COMPLETE"] * 4  # the budget allowed the most, 4
+    later = trials[2:]
+    assert len({t.user_attrs[WORKER_ATTR]["id"] for t in later}) == 2  # one in each process
+    a, b = later
+    assert a.datetime_start < b.datetime_complete and b.datetime_start < a.datetime_complete  # side by side

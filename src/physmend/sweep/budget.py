@@ -20,12 +20,19 @@ created, as one group of ``n_trials`` would be (:func:`physmend.sweep.storage._s
 trials measured are the same however many workers run them.
 
 The decision is made once per study and stored with it (:data:`BUDGET_ATTR`): a resumed sweep,
-and every worker of a study, use the same count. Trials themselves are deterministic given the
-count (each trial's sampler is seeded by ``seed`` + its number), so the same configuration, seed
-and count give the same trials; rerunning with ``sweep.n_trials=<count> sweep.budget=null``
-reproduces a budgeted sweep anywhere. **The count itself depends on how fast this machine trains
-the first trials**: it may differ between machines, and on one machine where the estimate falls
-near a whole number of trials.
+and every worker of a study, use the same count. A worker whose trials of the minimum end before
+the others' waits for the decision (:meth:`physmend.sweep.loop.Sweep.loop`), so that the trials it
+allows run side by side in every worker, as the rule counts them, not in the last worker alone.
+
+Run by one worker, the trials are deterministic given the count (each trial's sampler is seeded by
+``seed`` + its number), so the same configuration, seed and count give the same trials; rerunning
+with ``sweep.n_trials=<count> sweep.budget=null sweep.workers=1`` reproduces a budgeted sweep
+anywhere. Run side by side, a trial after the minimum is proposed (once the sampler models the
+space) and judged by the pruner against the trials finished when it asks and reports, which
+depends on their timing, as in any parallel Optuna study; the minimum's trials are the same however
+many workers run them. **The count itself depends on how fast this machine trains the first
+trials**: it may differ between machines, and on one machine where the estimate falls near a
+whole number of trials.
 """
 
 from __future__ import annotations

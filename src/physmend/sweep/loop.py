@@ -32,6 +32,10 @@ if TYPE_CHECKING:
     from physmend.tracking import Store
 
 
+DECISION_POLL_S = 0.25
+"""Seconds between looks at the study while a worker waits for the budget's decision."""
+
+
 @dataclass
 class Sweep(StackedTrials):
     """Everything one worker process needs to run trials of a study."""
@@ -95,9 +99,15 @@ class Sweep(StackedTrials):
             counts = tally(self.study.get_trials(deepcopy=False))
             self.apply_budget(bar)
             _show(bar, counts)
+            timed_out = self.settings.timeout is not None and time.monotonic() - start >= self.settings.timeout
             if counts.counted + counts.running >= self.n_trials:
-                break
-            if self.settings.timeout is not None and time.monotonic() - start >= self.settings.timeout:
+                if timed_out or not self._decision_pending(counts):
+                    break
+                # the budget decides when the running trials end, and may ask for more: this worker
+                # waits to run its share of them instead of leaving them to the others
+                time.sleep(DECISION_POLL_S)
+                continue
+            if timed_out:
                 _say(bar, f"sweep.timeout of {self.settings.timeout:g} s reached; no new trial is started")
                 break
             if self.settings.group > 1:
@@ -114,6 +124,11 @@ class Sweep(StackedTrials):
             outcomes.append(outcome)
             self._after(outcome, bar)
         return outcomes
+
+    def _decision_pending(self, counts: Any) -> bool:
+        """Whether ``sweep.budget``'s decision is still to come while the minimum's last trials run
+        (in other workers): it may ask for more trials than the minimum."""
+        return self.settings.budgeted is not None and self.target is None and counts.running > 0
 
     def _after(self, outcome: Outcome, bar: Any) -> None:
         if outcome.state == "FAIL":

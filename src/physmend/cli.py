@@ -176,6 +176,16 @@ def disk_trouble(exc: BaseException) -> str | None:
     return None
 
 
+def _start_standby() -> None:
+    """discover's sweep runs its first trials side by side wherever a second CPU is there
+    (``discover.workers: auto``): the first extra worker starts importing now, before the
+    configuration is composed (:mod:`physmend.prestart`; discover ends it where it asks for none)."""
+    from physmend import prestart
+    from physmend.cpus import usable_cpus
+
+    prestart.start_early(1 if usable_cpus() > 1 else 0)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     import os
 
@@ -198,6 +208,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     from physmend.errors import is_user_error
 
+    if args.command == "discover":
+        _start_standby()
     try:
         if args.command == "ui":
             return _ui(args)
@@ -244,6 +256,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                      f"(tracking.uri) is full or read-only; free space or point them elsewhere (runs it could not "
                      f"finish are left FAILED or RUNNING, nothing else is changed)"), file=sys.stderr)
         return 2
+    finally:
+        from physmend import prestart
+
+        prestart.release_early()  # not taken: the configuration asked for no extra worker, or it failed first
 
 
 if __name__ == "__main__":

@@ -140,3 +140,34 @@ def test_tanh_is_the_c_library_tanh() -> None:
     got = np.empty_like(special)
     each(special, got)
     assert got[0] == 1.0 and got[1] == -1.0 and np.isnan(got[2]) and got[3] == 0.0 and got[4] == 1.0 and got[5] == -1.0
+
+
+def test_threaded_whole_trajectory_steps_are_the_serial_steps() -> None:
+    """The whole-trajectory loop (:mod:`physmend.ude.rk4_steps`) with its rows shared among threads:
+    each row's numbers to the last bit, for as many rows as threads and for more."""
+    from physmend.ude.fixed_step import DriveForm, _solve
+
+    g = torch.Generator().manual_seed(3)
+    n, w, K = 5, 8, 40
+    for R in (2, 5):
+        A = (-0.3 * torch.eye(n, dtype=torch.float64) + 0.05 * torch.randn(n, n, dtype=torch.float64, generator=g))[None]
+        d = 0.1 * torch.randn(2 * K + 1, R, n, dtype=torch.float64, generator=g)
+        pre = 0.1 * torch.randn(2 * K + 1, 1, R, w, dtype=torch.float64, generator=g)
+        wu = 0.3 * torch.randn(1, 2, w, dtype=torch.float64, generator=g)
+        layers = [(0.3 * torch.randn(1, w, w, dtype=torch.float64, generator=g), torch.zeros(1, 1, w, dtype=torch.float64)),
+                  (0.3 * torch.randn(1, w, 2, dtype=torch.float64, generator=g), torch.zeros(1, 1, 2, dtype=torch.float64))]
+        form = DriveForm(A, lambda times: (d[:times.shape[0]], pre[:times.shape[0]]), wu, layers,
+                         torch.ones(1, 2, dtype=torch.float64), torch.tensor([0, 3]), torch.tensor([1, 4]), "tanh", 1)
+        u0 = torch.randn(R, n, dtype=torch.float64, generator=g)
+        grid = torch.linspace(0.0, 4.0, K + 1, dtype=torch.float64)[None].expand(R, -1).contiguous()
+        before = torch.get_num_threads()
+        try:
+            torch.set_num_threads(1)
+            one = _solve(form, u0, grid)
+            torch.set_num_threads(2)
+            two = _solve(form, u0, grid)
+        finally:
+            torch.set_num_threads(before)
+        assert one is not None and two is not None
+        assert float(one[0].abs().max()) > 0
+        assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])

@@ -22,11 +22,14 @@ from typing import Any
 
 
 def start(count: int) -> list[subprocess.Popen]:
-    """``count`` standby processes (one thread each while they import and compile; the sweep that hands
-    them their command line tells them their share of the CPUs), importing while this process goes on."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    return [subprocess.Popen([sys.executable, "-m", "physmend.sweep.standby"], env=env, stdin=subprocess.PIPE,
-                             stdout=subprocess.DEVNULL, text=True) for _ in range(max(0, count))]
+    """``count`` standby processes importing while this process goes on: those the command line
+    started before composing the configuration first (:func:`physmend.prestart.start_early`), new
+    ones for the rest; early ones beyond ``count`` are ended."""
+    from physmend import prestart
+
+    ready = prestart.take(count)
+    prestart.release_early()
+    return ready + prestart.spawn(count - len(ready))
 
 
 def hand(proc: subprocess.Popen, argv: list[str], env: dict[str, str]) -> subprocess.Popen | None:
@@ -45,11 +48,9 @@ def hand(proc: subprocess.Popen, argv: list[str], env: dict[str, str]) -> subpro
 def release(procs: list[subprocess.Popen]) -> None:
     """End the standby processes never handed a command line (they have run nothing); those handed
     one are the sweep's workers, which the sweep waits for or ends itself."""
-    for proc in procs:
-        if proc.stdin is not None and not proc.stdin.closed:
-            proc.kill()
-            proc.wait()
-            proc.stdin.close()
+    from physmend import prestart
+
+    prestart.release(procs)
 
 
 def _serve() -> int:

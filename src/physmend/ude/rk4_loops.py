@@ -3,8 +3,10 @@
 Eager PyTorch pays a few microseconds per operation, and the RK4 recursion of a small hybrid model
 is about a hundred operations per step, each on a few hundred numbers. Here each row (one segment
 of one model) runs its whole time loop as one compiled loop: its state, its matrix ``A`` and its
-network's stages stay in cache, and nothing is dispatched per operation. The rows are independent,
-so they run one after another.
+network's stages stay in cache, and nothing is dispatched per operation. The rows are independent:
+``forward`` and ``backward`` take a range of rows ``r0 … r1 - 1`` and hold no GIL, so the caller
+runs shares of the rows side by side on threads (:func:`physmend.ude.compiled_solve._loop`), with
+each row's arithmetic the same as alone.
 
 Layout (one dtype throughout, C-contiguous, rows model-major ``r = m·S + s``):
 

@@ -60,7 +60,7 @@ def _packed(i: int) -> bytes:
     work, problem, train, sets = _JOB
     import torch
 
-    torch.set_num_threads(1)  # one thread per retraining side by side (the parent's loop threads are not forked into)
+    torch.set_num_threads(1)  # one thread per retraining side by side (the loops' threaded twins are not forked into)
     result = retrain(work, problem, sets[i], train, position=i)
     if isinstance(result, BaseException):
         return pickle.dumps(result)

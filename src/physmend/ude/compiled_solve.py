@@ -7,8 +7,7 @@ from __future__ import annotations
 
 import sys
 import threading
-from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Sequence
 
 import torch
 
@@ -103,43 +102,16 @@ def pack(wu: torch.Tensor, gain: torch.Tensor, layers: Sequence[torch.Tensor], r
     return W, b, dims, fixed
 
 
-def _loop(loops: object, name: str, rows: int) -> Callable[..., None]:
-    """``loops.<name>`` over all ``rows``: called as ``loop(*args)``, it runs ``loops.<name>(r0, r1,
-    *args)`` on shares of the rows, side by side on as many threads as torch has where there are
-    rows to share (the loops hold no GIL), else all rows in this thread. Each row's arithmetic is
-    the same either way, so the numbers are too, to the last bit."""
-    fn = getattr(loops, name)
+def _loop(loops: object, name: str, rows: int):  # noqa: ANN202
+    """``loops.<name>``, or its threaded twin on as many threads as torch has (``threads``) where
+    there are rows to share."""
     threads = min(torch.get_num_threads(), rows)
     if threads <= 1:
-        return lambda *args: fn(0, rows, *args)
-    cuts = [rows * i // threads for i in range(threads + 1)]
+        return getattr(loops, name)
+    import numba
 
-    def shared(*args: object) -> None:
-        pool = _pool(threads - 1)
-        others = [pool.submit(fn, cuts[i], cuts[i + 1], *args) for i in range(1, threads)]
-        try:
-            fn(cuts[0], cuts[1], *args)  # this thread takes the first share
-        finally:
-            for f in others:
-                f.result()
-
-    return shared
-
-
-_POOL: list = [None, 0, 0]  # the executor, its threads, the process that made it (a forked child makes its own)
-
-
-def _pool(threads: int) -> ThreadPoolExecutor:
-    """Worker threads for the loops' shares (grown as needed; one set per process)."""
-    import os
-
-    pool, size, pid = _POOL
-    if pool is None or size < threads or pid != os.getpid():
-        if pool is not None and pid == os.getpid():
-            pool.shutdown(wait=False)  # a smaller one: its idle threads end
-        pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="physmend-loops")
-        _POOL[:] = [pool, threads, os.getpid()]
-    return pool
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    return getattr(loops, f"{name}_threads")
 
 
 class _Spare(threading.local):

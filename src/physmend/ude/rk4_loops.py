@@ -3,10 +3,8 @@
 Eager PyTorch pays a few microseconds per operation, and the RK4 recursion of a small hybrid model
 is about a hundred operations per step, each on a few hundred numbers. Here each row (one segment
 of one model) runs its whole time loop as one compiled loop: its state, its matrix ``A`` and its
-network's stages stay in cache, and nothing is dispatched per operation. The rows are independent:
-``forward`` and ``backward`` take a range of rows ``r0 … r1 - 1`` and hold no GIL, so the caller
-runs shares of the rows side by side on threads (:func:`physmend.ude.compiled_solve._loop`), with
-each row's arithmetic the same as alone.
+network's stages stay in cache, and nothing is dispatched per operation. The rows are independent,
+so they run one after another.
 
 Layout (one dtype throughout, C-contiguous, rows model-major ``r = m·S + s``):
 
@@ -258,11 +256,19 @@ def _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code,
             traj[kk + 1, r, e] = val
 
 
-@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", nogil=True)
-def forward(r0, r1, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,  # noqa: ANN001, ANN201, PLR0913
+@numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
+def forward(h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,  # noqa: ANN001, ANN201, PLR0913
             traj, Vs, Z, Y, OUT, MASK):  # pragma: no cover - compiled
-    """Rows ``r0`` to ``r1 - 1``, one after another (threads may run other rows meanwhile: no GIL)."""
-    for r in range(r0, r1):
+    for r in range(u0.shape[0]):
+        _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,
+                     traj, Vs, Z, Y, OUT, MASK)
+
+
+@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", parallel=True)
+def forward_threads(h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,  # noqa: ANN001, ANN201, PLR0913
+                    traj, Vs, Z, Y, OUT, MASK):  # pragma: no cover - compiled
+    """:func:`forward` with the rows shared among numba's threads."""
+    for r in numba.prange(u0.shape[0]):
         _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,
                      traj, Vs, Z, Y, OUT, MASK)
 
@@ -367,15 +373,24 @@ def _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed
         g_u0[r, e] = lam[e] + grad[0, r, e]
 
 
-@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", nogil=True)
-def backward(r0, r1, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN201, PLR0913
+@numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
+def backward(h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN201, PLR0913
              g_u0, G, GA, g_d, g_pre, g_gain):  # pragma: no cover - compiled
-    """Rows ``r0`` to ``r1 - 1``, one after another (threads may run other rows meanwhile: no GIL;
-    each row's sums are its own)."""
-    for r in range(r0, r1):
-        m, s = r // S, r % S
-        g_d[:, r, :] = 0.0
-        g_pre[:, m, s, :] = 0.0
-        g_gain[r, :] = 0.0
+    g_d[:] = 0.0
+    g_pre[:] = 0.0
+    g_gain[:] = 0.0
+    for r in range(g_u0.shape[0]):
+        _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,
+                      g_u0, G, GA, g_d, g_pre, g_gain)
+
+
+@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", parallel=True)
+def backward_threads(h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN201, PLR0913
+                     g_u0, G, GA, g_d, g_pre, g_gain):  # pragma: no cover - compiled
+    """:func:`backward` with the rows shared among numba's threads (each row's sums are its own)."""
+    g_d[:] = 0.0
+    g_pre[:] = 0.0
+    g_gain[:] = 0.0
+    for r in numba.prange(g_u0.shape[0]):
         _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,
                       g_u0, G, GA, g_d, g_pre, g_gain)

@@ -57,10 +57,17 @@ def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # 
             traj[kk + 1, r, e] = Vs[r, 0, e] + h6 * ((k1[e] + 2.0 * (k2[e] + k3[e])) + k4[e])
 
 
-@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", nogil=True)
-def steps(r0, r1, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # noqa: ANN001, ANN201, PLR0913
+@numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
+def steps(hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # noqa: ANN001, ANN201, PLR0913
           traj, slope, Vs, Z, Y, OUT):  # pragma: no cover - compiled
-    """Rows ``r0`` to ``r1 - 1``' steps, one row after another (threads may run other rows meanwhile:
-    no GIL) (module docstring)."""
-    for r in range(r0, r1):
+    """Every row's steps, one row after another (module docstring)."""
+    for r in range(u0.shape[0]):
+        _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, traj, slope, Vs, Z, Y, OUT)
+
+
+@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", parallel=True)
+def steps_threads(hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # noqa: ANN001, ANN201, PLR0913
+                  traj, slope, Vs, Z, Y, OUT):  # pragma: no cover - compiled
+    """:func:`steps` with the rows shared among numba's threads."""
+    for r in numba.prange(u0.shape[0]):
         _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, traj, slope, Vs, Z, Y, OUT)

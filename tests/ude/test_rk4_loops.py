@@ -171,3 +171,16 @@ def test_threaded_whole_trajectory_steps_are_the_serial_steps() -> None:
         assert one is not None and two is not None
         assert float(one[0].abs().max()) > 0
         assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+
+
+def test_the_shared_twin_is_compiled_ahead_only_where_threads_share_rows() -> None:
+    """``warm_shared``: in a fresh process, the whole-trajectory loop's threaded twin has no compiled
+    signature until it runs; with one thread it stays so, with two it has one (compiled or read back)."""
+    import subprocess
+    import sys
+
+    code = ("import torch; from physmend.ude import rk4_steps; from physmend.ude.fixed_step import warm_shared;"
+            "torch.set_num_threads(1); warm_shared(); a = len(rk4_steps.steps_threads.signatures);"
+            "torch.set_num_threads(2); warm_shared(); print(a, len(rk4_steps.steps_threads.signatures))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert out.stdout.split() == ["0", "1"]

@@ -98,7 +98,13 @@ def retrain_all(work: Any, problem: Any, sets: list[list[str]], train: Callable[
     _JOB = (work, problem, train, sets)
     try:
         with multiprocessing.get_context("fork").Pool(min(n_workers, len(sets))) as pool:
-            blobs = pool.map(_packed, range(len(sets)), chunksize=1)
+            pending = pool.map_async(_packed, range(len(sets)), chunksize=1)
+            # the loop this process runs next on all its threads (the kept network's trajectories),
+            # compiled while the children train (seconds once per installation; then numba's cache)
+            from physmend.ude.fixed_step import warm_shared
+
+            warm_shared(problem.dtype)
+            blobs = pending.get()
     finally:
         _JOB = None
     return [_unpacked(b, problem) for b in blobs]

@@ -207,3 +207,27 @@ def _dense(grid: torch.Tensor, real: torch.Tensor, traj: torch.Tensor, slope: to
     y = ((2 * th3 - 3 * th2 + 1) * u_a + (th3 - 2 * th2 + theta) * w * f_a
          + (-2 * th3 + 3 * th2) * u_b + (th3 - th2) * w * f_b)
     return y.transpose(0, 1)
+
+
+def warm_shared(dtype: torch.dtype = torch.float64) -> None:
+    """Compile the whole-trajectory loop's twin that shares rows among threads (or read it from
+    numba's cache) with a solve of a few numbers on this process's threads; nothing where it runs
+    one thread. A process that will solve on all its CPUs later does it while it would otherwise
+    wait (the mask stage's parent, while its children retrain): seconds once per installation."""
+    threads = torch.get_num_threads()
+    if threads < 2 or not rk4_loops_compiled():
+        return
+    g = torch.Generator().manual_seed(0)
+    A, d, pre, wu, w, b, gain = (torch.randn(*s, dtype=dtype, generator=g)
+                                 for s in ((threads, 2, 2), (3, threads, 2), (3, 1, threads, 3), (1, 2, 3), (1, 3, 2),
+                                           (1, 1, 2), (1, threads, 2)))
+    form = DriveForm(A, lambda times: (d, pre), wu, [(w, b)], gain, None, None, "tanh", 1)
+    with torch.no_grad():
+        _solve(form, torch.zeros(threads, 2, dtype=dtype), torch.tensor([[0.0, 0.1]] * threads, dtype=dtype))
+
+
+def rk4_loops_compiled() -> bool:
+    """Whether the CPU's solves run the compiled loops (:data:`physmend.ude.adjoint.LOOPS`)."""
+    from physmend.ude.adjoint import LOOPS
+
+    return bool(LOOPS["compiled"])

@@ -15,7 +15,7 @@ PACKAGE = SRC / "physmend"
 MAX_LINES = 400
 # Layers, lowest first: a module may import from its own layer's package and from lower layers.
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("exceptions", "redact", "cpus"),
+    ("exceptions", "redact", "cpus", "prestart"),
     ("config", "config_check", "settings"),
     ("modeling",),
     ("data",),

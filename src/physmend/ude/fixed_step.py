@@ -215,7 +215,7 @@ def warm_shared(dtype: torch.dtype = torch.float64) -> None:
     one thread. A process that will solve on all its CPUs later does it while it would otherwise
     wait (the mask stage's parent, while its children retrain): seconds once per installation."""
     threads = torch.get_num_threads()
-    if threads < 2 or not rk4_loops_compiled():
+    if threads < 2:
         return
     g = torch.Generator().manual_seed(0)
     A, d, pre, wu, w, b, gain = (torch.randn(*s, dtype=dtype, generator=g)
@@ -225,9 +225,3 @@ def warm_shared(dtype: torch.dtype = torch.float64) -> None:
     with torch.no_grad():
         _solve(form, torch.zeros(threads, 2, dtype=dtype), torch.tensor([[0.0, 0.1]] * threads, dtype=dtype))
 
-
-def rk4_loops_compiled() -> bool:
-    """Whether the CPU's solves run the compiled loops (:data:`physmend.ude.adjoint.LOOPS`)."""
-    from physmend.ude.adjoint import LOOPS
-
-    return bool(LOOPS["compiled"])

@@ -50,7 +50,8 @@ class RecordedRates:
         from physmend.modeling.evaluate import evaluate, mse_r2
 
         shape = next(iter(self.columns.values())).shape
-        flat = {k: v.ravel() for k, v in self.columns.items() if sp.Symbol(k) in expr.free_symbols}
+        used = expr.free_symbols  # a walk of the whole expression: once, not once per column
+        flat = {k: v.ravel() for k, v in self.columns.items() if sp.Symbol(k) in used}
         g = self.box(evaluate(expr, flat, n=int(np.prod(shape))).reshape(shape))[self.valid]
         y = self.targets[state][self.valid]
         ok = np.isfinite(g)

@@ -81,11 +81,13 @@ def _wait_and_run() -> int:
     order: dict[str, Any] = json.loads(line)
     os.environ.update({str(k): str(v) for k, v in order.get("env", {}).items()})
     sys.argv = ["physmend", *(str(a) for a in order["argv"])]
-    from physmend.cli import main
+    import runpy
+    import warnings
 
-    # `physmend <argv>`, its exit status this process's (the module imported above is not run again
-    # as __main__: runpy would warn on stderr that it was imported already)
-    return main(sys.argv[1:])
+    with warnings.catch_warnings():  # runpy's note that PRELOAD imported the module already: not the user's concern
+        warnings.filterwarnings("ignore", message=r"'physmend\.cli' found in sys\.modules", category=RuntimeWarning)
+        runpy.run_module("physmend.cli", run_name="__main__")  # `physmend <argv>`: exits with its status
+    return 0
 
 
 if __name__ == "__main__":

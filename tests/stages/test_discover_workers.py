@@ -49,6 +49,22 @@ def _ready(procs: list, settle: float = 0.5, limit: float = 120.0) -> None:
                 break
 
 
+def _sweep_beside_standby(overrides: list[str], conf: Path, extra: int) -> list:
+    """discover's sweep (``given_wins``) run beside ``extra`` standby processes started before it and
+    ready, as discover's are; returns them (ended or handed their command line)."""
+    from physmend.stages import sweep
+    from physmend.sweep import standby
+
+    early = standby.start(extra)
+    try:
+        _ready(early)
+        sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
+                  given_wins=True, standby=early)
+    finally:
+        standby.release(early)
+    return early
+
+
 def test_auto_is_the_cpus_at_most_the_first_trials() -> None:
     assert _workers("auto", 2) == min(usable_cpus(), 2)
     assert _workers("auto", 1) == 1  # one trial: one process
@@ -72,7 +88,6 @@ def test_two_workers_train_the_trials_one_process_trains(
     is searched by no process (a worker that searched it would refuse the command line and end with
     an error); the second process is the one started before the sweep (:mod:`physmend.sweep.standby`)."""
     from physmend.stages import sweep
-    from physmend.sweep import standby
 
     monkeypatch.chdir(user_project)
     conf = user_project / "my_conf"
@@ -80,13 +95,7 @@ def test_two_workers_train_the_trials_one_process_trains(
     for workers in (2, 1):
         overrides = [*LONGER, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
                      "sweep.group=1", f"sweep.workers={workers}", f"sweep.study_name=w{workers}"]
-        early = standby.start(workers - 1)
-        try:
-            _ready(early)
-            sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
-                      given_wins=True, standby=early)
-        finally:
-            standby.release(early)
+        early = _sweep_beside_standby(overrides, conf, workers - 1)
         out = capsys.readouterr()
         assert "ended with exit status" not in out.err  # no worker process failed
         assert "ude.width given on the command line" in out.out
@@ -168,20 +177,11 @@ def test_after_the_budget_s_decision_every_worker_runs_its_share(
     """Two workers, a minimum of two trials and a budget that allows two more: the worker whose first
     trial ends first waits for the decision (it comes when the other's ends) instead of leaving the
     two more to the other worker, so they run side by side, one in each process."""
-    from physmend.stages import sweep
-    from physmend.sweep import standby
-
     monkeypatch.chdir(user_project)
     conf = user_project / "my_conf"
     overrides = [*TINY, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=4", "sweep.budget=100000",
                  "sweep.group=1", "sweep.workers=2", "sweep.pruner=none", "sweep.study_name=rounds"]
-    early = standby.start(1)
-    try:
-        _ready(early)
-        sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
-                  given_wins=True, standby=early)
-    finally:
-        standby.release(early)
+    _sweep_beside_standby(overrides, conf, 1)
     assert "ended with exit status" not in capsys.readouterr().err
     trials = optuna.load_study(study_name="rounds", storage=f"sqlite:///{user_project / 'optuna.db'}").trials
     assert [t.state.name for t in trials] == ["COMPLETE"] * 4  # the budget allowed the most, 4

@@ -6,7 +6,9 @@ in a temporary folder."""
 
 from __future__ import annotations
 
+import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import optuna
@@ -49,9 +51,10 @@ def _ready(procs: list, settle: float = 0.5, limit: float = 120.0) -> None:
                 break
 
 
-def _sweep_beside_standby(overrides: list[str], conf: Path, extra: int) -> list:
+def _sweep_beside_standby(overrides: list[str], conf: Path, extra: int, meanwhile: Callable[[], None] | None = None) -> list:
     """discover's sweep (``given_wins``) run beside ``extra`` standby processes started before it and
-    ready, as discover's are; returns them (ended or handed their command line)."""
+    ready, as discover's are, with discover's ``meanwhile`` work; returns the standby processes
+    (ended or handed their command line)."""
     from physmend.stages import sweep
     from physmend.sweep import standby
 
@@ -59,7 +62,7 @@ def _sweep_beside_standby(overrides: list[str], conf: Path, extra: int) -> list:
     try:
         _ready(early)
         sweep.run(compose(overrides, user_config_dir=conf), None, overrides=overrides, config_dir=conf,
-                  given_wins=True, standby=early)
+                  given_wins=True, standby=early, meanwhile=meanwhile)
     finally:
         standby.release(early)
     return early
@@ -86,7 +89,9 @@ def test_two_workers_train_the_trials_one_process_trains(
     """discover's sweep (``given_wins``, a budget) in two processes and in one: the same two trials, the
     same values, and the trials a stack of two would train; ``ude.width`` given on the command line
     is searched by no process (a worker that searched it would refuse the command line and end with
-    an error); the second process is the one started before the sweep (:mod:`physmend.sweep.standby`)."""
+    an error); the second process is the one started before the sweep (:mod:`physmend.sweep.standby`).
+    The caller's ``meanwhile`` work runs once in this process where another worker's trial keeps it
+    waiting, and not at all where it trains every trial itself."""
     from physmend.stages import sweep
 
     monkeypatch.chdir(user_project)
@@ -95,7 +100,9 @@ def test_two_workers_train_the_trials_one_process_trains(
     for workers in (2, 1):
         overrides = [*LONGER, "ude.width=8", "sweep.n_trials=2", "sweep.max_trials=2", "sweep.budget=100000",
                      "sweep.group=1", f"sweep.workers={workers}", f"sweep.study_name=w{workers}"]
-        early = _sweep_beside_standby(overrides, conf, workers - 1)
+        waited: list[int] = []
+        early = _sweep_beside_standby(overrides, conf, workers - 1, meanwhile=lambda: waited.append(os.getpid()))
+        assert waited == ([os.getpid()] if workers == 2 else [])
         out = capsys.readouterr()
         assert "ended with exit status" not in out.err  # no worker process failed
         assert "ude.width given on the command line" in out.out

@@ -58,3 +58,21 @@ def test_a_new_process_draws_a_new_worker_id() -> None:
     ids = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
            for _ in range(2)}
     assert len(ids) == 2 and workers.WORKER_ID not in ids
+
+
+def test_the_caller_s_work_for_later_runs_once_and_its_failure_is_not_the_sweep_s() -> None:
+    """``Sweep.idle``: the ``meanwhile`` work runs the first time a worker waits, never again; an
+    exception from it stays there (the stage it prepares does that work again and reports it)."""
+    from physmend.sweep.loop import Sweep
+
+    calls: list[str] = []
+
+    def work() -> None:
+        calls.append("ran")
+        raise RuntimeError("the later stage would report this")
+
+    sweep = Sweep(*([None] * 9), meanwhile=work)
+    sweep.idle()
+    sweep.idle()
+    assert calls == ["ran"] and sweep.meanwhile is None
+    Sweep(*([None] * 9)).idle()  # nothing to do: nothing happens

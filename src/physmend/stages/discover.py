@@ -7,7 +7,7 @@ and each prints its finding. The proposal is left for the engineer to accept or 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +58,28 @@ def sweep_settings(cfg: Any, overrides: Sequence[str] | None) -> Any:
     return cfg
 
 
+def _before_mask(cfg: Any) -> Callable[[], None]:
+    """What the mask stage will need that its sweep's idle time can prepare: the loop that simulates
+    the kept network on all this process's threads, compiled (:func:`physmend.ude.fixed_step.warm_shared`;
+    seconds on a fresh install). Resolved now, while this process is not one of the sweep's workers."""
+    from physmend.cpus import threads as thread_count
+    from physmend.device import resolve_device
+    from physmend.problem import dtype_of
+    from physmend.settings import group_settings
+
+    top = group_settings(cfg, "")
+    count, dtype = thread_count(top.threads), dtype_of(cfg)
+    on_cpu = resolve_device(top.device).type == "cpu"
+
+    def work() -> None:
+        if on_cpu:
+            from physmend.ude.fixed_step import warm_shared
+
+            warm_shared(dtype, threads=count)
+
+    return work
+
+
 def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] | None = None,
         config_dir: str | Path | None = None) -> str:
     """Run the whole pipeline; returns the proposal's run ID.
@@ -105,7 +127,7 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
             sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
                                              for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
         sweep_id = sweep.run(cfg, ids[-1][1], overrides=sweep_overrides, config_dir=config_dir, given_wins=True,
-                             standby=early)
+                             standby=early, meanwhile=_before_mask(cfg))
     finally:
         standby.release(early)
     ids.append(("sweep", sweep_id))

@@ -4,7 +4,7 @@ run per trial under the sweep's parent run (see :mod:`physmend.sweep` for how it
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +23,12 @@ def run(
     config_dir: str | Path | None = None,
     given_wins: bool = False,
     standby: Sequence[Any] = (),
+    meanwhile: Callable[[], None] | None = None,
 ) -> str:
     """Run (or resume, or join as a worker) the sweep configured by ``cfg.sweep``; returns the parent run ID.
 
-    :func:`physmend.sweep.run_sweep` does it all: what ``overrides``, ``config_dir``, ``given_wins`` and
-    ``standby`` mean, what is checked before any run is written, restarts, and Ctrl-C.
+    :func:`physmend.sweep.run_sweep` does it all: what ``overrides``, ``config_dir``, ``given_wins``,
+    ``standby`` and ``meanwhile`` mean, what is checked before any run is written, restarts, and Ctrl-C.
     """
-    return run_sweep(cfg, source_run_id, overrides=overrides, config_dir=config_dir, given_wins=given_wins, standby=standby)
+    return run_sweep(cfg, source_run_id, overrides=overrides, config_dir=config_dir, given_wins=given_wins, standby=standby,
+                     meanwhile=meanwhile)

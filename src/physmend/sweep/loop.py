@@ -55,6 +55,9 @@ class Sweep(StackedTrials):
     target: int | None = None  # trials the study has in the end (sweep.n_trials, or the budget's decision)
     budget_line: str = ""  # the budget's decision, for the summary
     progress: Any = None  # EpochProgress: the bar's "trial 3 epoch 20/120" while a trial trains
+    #: the caller's work for after the sweep, run once where this worker would otherwise only wait for
+    #: the others' trials (:meth:`idle`); None: nothing, or done
+    meanwhile: Callable[[], None] | None = None
 
     @property
     def n_trials(self) -> int:
@@ -105,6 +108,7 @@ class Sweep(StackedTrials):
                     break
                 # the budget decides when the running trials end, and may ask for more: this worker
                 # waits to run its share of them instead of leaving them to the others
+                self.idle()
                 time.sleep(DECISION_POLL_S)
                 continue
             if timed_out:
@@ -124,6 +128,16 @@ class Sweep(StackedTrials):
             outcomes.append(outcome)
             self._after(outcome, bar)
         return outcomes
+
+    def idle(self) -> None:
+        """Run :attr:`meanwhile` once, now that this worker waits for trials running elsewhere. Its
+        failure is not the sweep's: the stage it prepares does the same work again and reports it."""
+        work, self.meanwhile = self.meanwhile, None
+        if work is not None:
+            try:
+                work()
+            except Exception:  # noqa: BLE001, S110 - see the docstring
+                pass
 
     def _decision_pending(self, counts: Any) -> bool:
         """Whether ``sweep.budget``'s decision is still to come while the minimum's last trials run

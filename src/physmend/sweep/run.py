@@ -41,6 +41,7 @@ def run_sweep(
     config_dir: str | Path | None = None,
     given_wins: bool = False,
     standby: Sequence[Any] = (),
+    meanwhile: Callable[[], None] | None = None,
 ) -> str:
     """Run (or resume, or join as a worker) the sweep configured by ``cfg.sweep``; returns the parent run ID.
 
@@ -50,6 +51,8 @@ def run_sweep(
     and searched by the space is an error, or with ``given_wins`` (``physmend discover``, whose user did
     not pick the space) no longer searched, said in one line. ``standby``: processes started early
     (:mod:`physmend.sweep.standby`) that become the extra workers; the caller ends those not used.
+    ``meanwhile``: the caller's work for after the sweep, run once in this process where it only
+    waits for other workers' trials (none: it is not run; :meth:`Sweep.idle`).
 
     Everything the user gave (space, settings, model, data, source run) is checked before any run
     is written. A diverging trial is restarted (``sweep.restarts``, :mod:`physmend.sweep.restart`), and
@@ -108,7 +111,8 @@ def run_sweep(
                 proc.terminate()
                 proc.wait()
             raise
-        return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer()), helpers)
+        return _drive(Sweep(cfg, settings, space, study, storage, store, parent, configs, _trainer(),
+                            meanwhile=meanwhile), helpers)
 
 
 def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
@@ -120,6 +124,8 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
     status = "FINISHED"
     try:
         sweep.loop(bar)
+        if helpers:
+            sweep.idle()
         _join_workers(list(helpers))
     except KeyboardInterrupt:
         status = "KILLED"

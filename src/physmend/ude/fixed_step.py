@@ -209,12 +209,14 @@ def _dense(grid: torch.Tensor, real: torch.Tensor, traj: torch.Tensor, slope: to
     return y.transpose(0, 1)
 
 
-def warm_shared(dtype: torch.dtype = torch.float64) -> None:
+def warm_shared(dtype: torch.dtype = torch.float64, threads: int | None = None) -> None:
     """Compile the whole-trajectory loop's twin that shares rows among threads (or read it from
-    numba's cache) with a solve of a few numbers on this process's threads; nothing where it runs
-    one thread. A process that will solve on all its CPUs later does it while it would otherwise
-    wait (the mask stage's parent, while its children retrain): seconds once per installation."""
-    threads = torch.get_num_threads()
+    numba's cache) with a solve of a few numbers; nothing for one thread. ``threads``: those the
+    later solves run on (default: this process's torch threads now). A process that will solve on
+    all its CPUs later does it while it would otherwise wait (``physmend discover`` while its
+    sweep's other workers end their trials; the mask stage's parent while its children retrain):
+    seconds once per installation (8 s measured on a fresh one, 2 cores)."""
+    threads = torch.get_num_threads() if threads is None else int(threads)
     if threads < 2:
         return
     g = torch.Generator().manual_seed(0)
@@ -222,6 +224,11 @@ def warm_shared(dtype: torch.dtype = torch.float64) -> None:
                                  for s in ((threads, 2, 2), (3, threads, 2), (3, 1, threads, 3), (1, 2, 3), (1, 3, 2),
                                            (1, 1, 2), (1, threads, 2)))
     form = DriveForm(A, lambda times: (d, pre), wu, [(w, b)], gain, None, None, "tanh", 1)
-    with torch.no_grad():
-        _solve(form, torch.zeros(threads, 2, dtype=dtype), torch.tensor([[0.0, 0.1]] * threads, dtype=dtype))
+    now = torch.get_num_threads()  # the twin is picked by torch's thread count (compiled_solve._loop)
+    try:
+        torch.set_num_threads(threads)
+        with torch.no_grad():
+            _solve(form, torch.zeros(threads, 2, dtype=dtype), torch.tensor([[0.0, 0.1]] * threads, dtype=dtype))
+    finally:
+        torch.set_num_threads(now)
 

@@ -23,6 +23,7 @@ from physmend.symbolic import (
     fit,
     fit_many,
     mse_r2,
+    prepare,
 )
 from physmend.symbolic._sindy import library
 
@@ -277,3 +278,16 @@ def test_score_rule_picks_the_steepest_accuracy_gain() -> None:
                         candidates=[Candidate(expr=x * k, complexity=3 + 2 * k, mse=m, r2=1 - m, text=str(x * k)) for k, m in enumerate(mses)])
     idx, why = choose(front, "score")
     assert idx == 2 and "Rule 'score'" in why
+
+
+def test_prepare_imports_the_back_end_s_library_ahead_and_never_pysr_s() -> None:
+    """``prepare``: in a fresh process pyoperon's regressor is not imported until ``prepare('operon')``
+    imports it; ``prepare('pysr')`` imports nothing (importing PySR may start Julia's set-up); an
+    unknown back end is an error naming the choices."""
+    code = ("import sys; from physmend.symbolic import prepare; a = 'pyoperon.sklearn' in sys.modules;"
+            "prepare('operon'); prepare('pysr');"
+            "print(a, 'pyoperon.sklearn' in sys.modules, 'pysr' in sys.modules, 'juliacall' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
+    assert out.stdout.split() == ["False", "True", "False", "False"]
+    with pytest.raises(SymbolicError, match="symbolic.backend must be one of"):
+        prepare("eureqa")

@@ -16,7 +16,7 @@ only imported where Julia is already installed.
 
 from __future__ import annotations
 
-from physmend.symbolic._api import BACKENDS, available_backends, fit, fit_many
+from physmend.symbolic._api import BACKENDS, available_backends, fit, fit_many, prepare
 from physmend.symbolic._errors import BackendUnavailable, SymbolicError
 from physmend.modeling.evaluate import display, evaluate, mse_r2
 from physmend.symbolic._front import RULES, Candidate, ParetoFront, choose
@@ -35,4 +35,5 @@ __all__ = [
     "fit",
     "fit_many",
     "mse_r2",
+    "prepare",
 ]

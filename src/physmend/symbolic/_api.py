@@ -35,6 +35,15 @@ def _backend(name: str) -> Any:
     return importlib.import_module(BACKENDS[name])
 
 
+def prepare(name: str) -> None:
+    """Import back end ``name``'s library now (seconds where no bytecode is written), for a process
+    that waits anyway before it searches; nothing where the back end cannot run here or has nothing
+    to import ahead (PySR: importing it may start Julia's set-up)."""
+    module = _backend(name)
+    if module.unavailable_reason() is None and hasattr(module, "prepare"):
+        module.prepare()
+
+
 def available_backends() -> list[str]:
     """Names of the back ends that can run on this machine (checked without importing them)."""
     return [name for name in sorted(BACKENDS) if _backend(name).unavailable_reason() is None]

@@ -81,6 +81,11 @@ def unavailable_reason() -> str | None:
     return None
 
 
+def prepare() -> None:
+    """Import pyoperon's regressor (what :func:`resolve_options` and :func:`search` use)."""
+    from pyoperon.sklearn import SymbolicRegressor  # noqa: F401
+
+
 def resolve_options(options: dict) -> dict[str, Any]:
     """Defaults updated by ``options``; any ``pyoperon.sklearn.SymbolicRegressor`` argument is accepted."""
     from pyoperon.sklearn import SymbolicRegressor

@@ -62,6 +62,11 @@ def unavailable_reason() -> str | None:
     return None
 
 
+def prepare() -> None:
+    """Import pysindy's optimiser (what :func:`search` uses)."""
+    from pysindy.optimizers import STLSQ  # noqa: F401
+
+
 def resolve_options(options: dict) -> dict[str, Any]:
     """Defaults updated by ``options`` (keys: see ``DEFAULTS``)."""
     settings = resolve(options, DEFAULTS, backend="sindy")

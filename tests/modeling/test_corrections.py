@@ -84,3 +84,37 @@ def test_recalibrated_parameters_travel_with_the_terms_and_only_declared_uncerta
     # no parameters: the file reads as before (an empty mapping)
     plain = write_corrections(tmp_path / "plain.yaml", [corr])
     assert read_corrections(plain)[1]["parameters"] == {} and "parameters" not in plain.read_text()
+
+
+def test_a_corrected_model_built_after_its_base_is_the_one_built_alone() -> None:
+    """Rows, blocks and functions a corrected model shares with the model as written are split,
+    solved and lambdified once per process (``_row_split``, ``_SOLVED``, ``_LAMBDIFIED``): built
+    after its base it reuses them, and its equations,
+    affine split and derivatives are exactly those it has when built in a process that built nothing."""
+    from physmend.modeling import compile as compiling
+    from physmend.modeling import lambdify as lambdifying
+    from physmend.modeling import simplify as simplifying
+
+    corr = Correction(state="a.T", term="-k*(a.T - b.T)*sqrt(Abs(a.T - b.T))", constants={"k": 2.0}, unit="W")
+
+    def built() -> tuple:
+        sm = apply_corrections(two_rooms(), [corr]).simplify()
+        cm = compile_model(sm)
+        u = torch.tensor([[20.0, 10.0], [5.0, 7.5]], dtype=torch.float64)
+        du = cm.rhs(u, torch.zeros(2, 0, dtype=torch.float64), cm.default_parameters().expand(2, -1))
+        split = cm._affine
+        return sm.rhs, split.constant, split.varying, split.nonlinear, split.rest_args, du
+
+    compiling._row_split.cache_clear()
+    simplifying._SOLVED.clear()
+    lambdifying._LAMBDIFIED.clear()
+    alone = built()
+    compiling._row_split.cache_clear()
+    simplifying._SOLVED.clear()
+    lambdifying._LAMBDIFIED.clear()
+    compile_model(two_rooms().simplify())  # the model as written first, as every stage of discover builds it
+    hits = compiling._row_split.cache_info().hits
+    after = built()
+    assert compiling._row_split.cache_info().hits > hits  # the row b.T shares was not split again
+    assert after[:5] == alone[:5]
+    assert torch.equal(after[5], alone[5])

@@ -6,6 +6,7 @@ Shapes: ``u`` states ``(..., n_states)``, ``x`` inputs ``(..., n_inputs)``, ``p`
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -62,25 +63,37 @@ def _linear_in(term: sp.Expr, ux: set) -> bool:
     return not any(sp.diff(term, s).free_symbols & ux for s in term.free_symbols & ux)
 
 
+@functools.lru_cache(maxsize=4096)
+def _row_split(rhs: sp.Expr, u: tuple, x: tuple) -> tuple[sp.Expr | None, tuple, tuple, sp.Expr]:
+    """One row ``du_i/dt = rhs`` split: its terms not affine in the states ``u`` and inputs ``x``
+    (None: every term is), and the affine rest's coefficients of ``u``, of ``x`` and its constant.
+    Kept per row: a corrected model (the model as written plus a term or two) or a formula tried
+    after another builds the rows it shares with them again (seconds of sympy for tens of states)."""
+    ux = set(u) | set(x)
+    e = sp.expand(rhs) if rhs.count_ops() < 400 else rhs
+    terms = sp.Add.make_args(e)
+    rest = [t for t in terms if not _linear_in(t, ux)]
+    remainder = None
+    if rest:  # the terms affine in states and inputs stay in A, B, c; ``rest`` adds the others
+        remainder = sp.Add(*rest)
+        e = sp.Add(*[t for t in terms if t not in rest])
+    return (remainder, tuple(sp.diff(e, s) for s in u), tuple(sp.diff(e, s) for s in x),
+            e.xreplace({s: 0 for s in ux}))
+
+
 def _affine_split(model: SimplifiedModel, u: list, x: list, p: list) -> AffineSplit:
     n, m = len(u), len(x)
-    ux = set(u) | set(x)
     entries: list[sp.Expr] = [sp.Integer(0)] * (n * n + n * m + n)
     nonlinear: list[int] = []
     remainders: list[sp.Expr] = []
     for i, name in enumerate(model.state_names):
-        e = sp.expand(model.rhs[name]) if model.rhs[name].count_ops() < 400 else model.rhs[name]
-        terms = sp.Add.make_args(e)
-        rest = [t for t in terms if not _linear_in(t, ux)]
-        if rest:  # the terms affine in states and inputs stay in A, B, c; ``rest`` adds the others
+        remainder, by_state, by_input, constant_term = _row_split(model.rhs[name], tuple(u), tuple(x))
+        if remainder is not None:
             nonlinear.append(i)
-            remainders.append(sp.Add(*rest))
-            e = sp.Add(*[t for t in terms if t not in rest])
-        for j, s in enumerate(u):
-            entries[i * n + j] = sp.diff(e, s)
-        for k, s in enumerate(x):
-            entries[n * n + i * m + k] = sp.diff(e, s)
-        entries[n * n + n * m + i] = e.xreplace({s: 0 for s in ux})
+            remainders.append(remainder)
+        entries[i * n : (i + 1) * n] = by_state
+        entries[n * n + i * m : n * n + (i + 1) * m] = by_input
+        entries[n * n + n * m + i] = constant_term
     entries = [sp.sympify(e) for e in entries]
     constant = [float(e) if e.is_number and e.is_real else 0.0 for e in entries]
     varying = [k for k, e in enumerate(entries) if not (e.is_number and e.is_real)]

@@ -92,13 +92,33 @@ def _in_arg_dtype(fn: Callable[..., list]) -> Callable[..., list]:
     return call
 
 
+#: functions lambdified in this process, by their arguments and expressions (most recent last): a
+#: corrected model shares its outputs, observed equations, start values and most coefficients with
+#: the model as written, and a formula tried after another shares them with the one before
+_LAMBDIFIED: dict[tuple[tuple[sp.Symbol, ...], tuple[sp.Expr, ...]], Callable[..., list]] = {}
+_LAMBDIFIED_KEPT = 256
+
+
 def lambdify_torch(
     args: Sequence[sp.Symbol], exprs: Sequence[sp.Expr], what: str
 ) -> Callable[..., list]:
     """Lambdify ``exprs`` of ``args`` into a function of tensors (one tensor per argument).
 
     Functions the torch printer lacks (``cot``, ``sech``, ``acsc`` …) are rewritten first
-    (:func:`physmend.modeling.rewrite.for_torch`), with the same values."""
+    (:func:`physmend.modeling.rewrite.for_torch`), with the same values. ``what`` names the
+    expressions in an error. The function is stateless: the same arguments and expressions give the
+    one made before in this process."""
+    key = (tuple(args), tuple(sp.sympify(e) for e in exprs))
+    fn = _LAMBDIFIED.pop(key, None)
+    if fn is None:
+        fn = _lambdify_anew(args, exprs, what)
+        if len(_LAMBDIFIED) >= _LAMBDIFIED_KEPT:
+            _LAMBDIFIED.pop(next(iter(_LAMBDIFIED)))
+    _LAMBDIFIED[key] = fn
+    return fn
+
+
+def _lambdify_anew(args: Sequence[sp.Symbol], exprs: Sequence[sp.Expr], what: str) -> Callable[..., list]:
     safe = {s: sp.Symbol(f"a{i}", real=True) for i, s in enumerate(args)}
     renamed = [for_torch(sp.sympify(e).xreplace(safe)) for e in exprs]
     stray = set().union(*(e.free_symbols for e in renamed)) - set(safe.values()) if renamed else set()

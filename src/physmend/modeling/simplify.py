@@ -248,7 +248,27 @@ def simplify(model: Declared) -> SimplifiedModel:
     )
 
 
+#: blocks solved in this process, by their residuals and unknowns (most recent last): a corrected
+#: model or a formula tried after another shares most of its blocks with the model built before
+_SOLVED: dict[tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]], dict[sp.Symbol, sp.Expr]] = {}
+_SOLVED_KEPT = 4096
+
+
 def _solve_block(
+    model_name: str, eqs: list[Equation], residuals: list[sp.Expr], unknowns: list[sp.Symbol]
+) -> dict[sp.Symbol, sp.Expr]:
+    """The block's ``unknowns`` solved from its ``residuals`` (errors name ``model_name`` and list ``eqs``)."""
+    key = (tuple(residuals), tuple(unknowns))
+    solved = _SOLVED.pop(key, None)
+    if solved is None:
+        solved = _solve_block_anew(model_name, eqs, residuals, unknowns)
+        if len(_SOLVED) >= _SOLVED_KEPT:
+            _SOLVED.pop(next(iter(_SOLVED)))
+    _SOLVED[key] = solved
+    return dict(solved)
+
+
+def _solve_block_anew(
     model_name: str, eqs: list[Equation], residuals: list[sp.Expr], unknowns: list[sp.Symbol]
 ) -> dict[sp.Symbol, sp.Expr]:
     listing = "\n  ".join(str(e) for e in eqs)

@@ -96,7 +96,7 @@ class Budget:
         return (f"budget {self.seconds:g} s: the first {done} trial{'s' if done != 1 else ''} took {spent:.1f} s "
                 f"({each:.1f} s each{pace}), so {n} trial{'s' if n != 1 else ''} in all ({why}; at least {self.min_trials}, at most "
                 f"{self.max_trials}); the count depends on this machine's speed — `sweep.n_trials={n} sweep.budget=null` "
-                f"repeats it")
+                f"runs that many anywhere (with `sweep.workers=1`, the same trials)")
 
 
 def wall_span(trials: list[Any]) -> float:

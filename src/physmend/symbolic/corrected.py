@@ -36,7 +36,7 @@ def simulate_corrected(problem: Any, problem_cfg: Any) -> tuple[Any, str | None]
     from physmend.ude.reference import reference
 
     try:
-        ref = reference(problem, problem_cfg)
+        ref = reference(problem, problem_cfg, shared_clock=False)  # judged at the records' own times
     except SimulationError as exc:
         return None, str(exc).split(":")[0]
     y = problem.compiled.outputs(ref.states, ref.inputs, ref.batch.params[None])  # (T, B, k)

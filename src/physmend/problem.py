@@ -11,6 +11,7 @@ import torch
 from physmend.device import CPU, resolve_device
 from physmend.modeling import CompiledModel, SimplifiedModel, compile_model, load_model
 from physmend.modeling.model import Model
+from physmend.modeling.recent import Recent
 from physmend.settings import SimulateSettings, group_settings
 
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
@@ -71,8 +72,7 @@ def load_problem(cfg: Any) -> Problem:
 #: the most recently used last: a model built again with the same equations (every stage of
 #: ``physmend discover`` builds the user's model) is not simplified and compiled again (seconds for
 #: tens of states); a model file edited in between builds other equations and is compiled anew
-_COMPILED: dict[str, tuple[SimplifiedModel, CompiledModel]] = {}
-_COMPILED_KEPT = 4
+_COMPILED: Recent[tuple[SimplifiedModel, CompiledModel]] = Recent(4)
 
 
 def model_text(model: Model) -> str:
@@ -100,15 +100,11 @@ def model_text(model: Model) -> str:
 def simplified_and_compiled(model: Model) -> tuple[SimplifiedModel, CompiledModel]:
     """``model`` simplified and compiled (:func:`compile_model`), or what this process made of a
     model with the same :func:`model_text` (they are never modified once made)."""
-    key = model_text(model)
-    made = _COMPILED.pop(key, None)
-    if made is None:
+    def make() -> tuple[SimplifiedModel, CompiledModel]:
         simplified = model.simplify()
-        made = (simplified, compile_model(simplified))
-    _COMPILED[key] = made
-    while len(_COMPILED) > _COMPILED_KEPT:
-        _COMPILED.pop(next(iter(_COMPILED)))
-    return made
+        return simplified, compile_model(simplified)
+
+    return _COMPILED.get(model_text(model), make)
 
 
 def _fastest(problem: Problem) -> float:

@@ -11,6 +11,7 @@ import sympy as sp
 import torch
 
 from physmend.modeling.errors import ModelError
+from physmend.modeling.recent import Recent
 from physmend.modeling.rewrite import for_torch
 
 
@@ -95,8 +96,7 @@ def _in_arg_dtype(fn: Callable[..., list]) -> Callable[..., list]:
 #: functions lambdified in this process, by their arguments and expressions (most recent last): a
 #: corrected model shares its outputs, observed equations, start values and most coefficients with
 #: the model as written, and a formula tried after another shares them with the one before
-_LAMBDIFIED: dict[tuple[tuple[sp.Symbol, ...], tuple[sp.Expr, ...]], Callable[..., list]] = {}
-_LAMBDIFIED_KEPT = 256
+_LAMBDIFIED: Recent[Callable[..., list]] = Recent(256)
 
 
 def lambdify_torch(
@@ -108,14 +108,7 @@ def lambdify_torch(
     (:func:`physmend.modeling.rewrite.for_torch`), with the same values. ``what`` names the
     expressions in an error. The function is stateless: the same arguments and expressions give the
     one made before in this process."""
-    key = (tuple(args), tuple(sp.sympify(e) for e in exprs))
-    fn = _LAMBDIFIED.pop(key, None)
-    if fn is None:
-        fn = _lambdify_anew(args, exprs, what)
-        if len(_LAMBDIFIED) >= _LAMBDIFIED_KEPT:
-            _LAMBDIFIED.pop(next(iter(_LAMBDIFIED)))
-    _LAMBDIFIED[key] = fn
-    return fn
+    return _LAMBDIFIED.get((tuple(args), tuple(sp.sympify(e) for e in exprs)), lambda: _lambdify_anew(args, exprs, what))
 
 
 def _lambdify_anew(args: Sequence[sp.Symbol], exprs: Sequence[sp.Expr], what: str) -> Callable[..., list]:

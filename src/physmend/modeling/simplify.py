@@ -25,6 +25,7 @@ from sympy.solvers.solveset import NonlinearError
 
 from physmend.modeling.errors import ModelError
 from physmend.modeling.parts import Declared, Equation, Variable, der_name
+from physmend.modeling.recent import Recent
 
 
 @dataclass
@@ -250,22 +251,15 @@ def simplify(model: Declared) -> SimplifiedModel:
 
 #: blocks solved in this process, by their residuals and unknowns (most recent last): a corrected
 #: model or a formula tried after another shares most of its blocks with the model built before
-_SOLVED: dict[tuple[tuple[sp.Expr, ...], tuple[sp.Symbol, ...]], dict[sp.Symbol, sp.Expr]] = {}
-_SOLVED_KEPT = 4096
+_SOLVED: Recent[dict[sp.Symbol, sp.Expr]] = Recent(4096)
 
 
 def _solve_block(
     model_name: str, eqs: list[Equation], residuals: list[sp.Expr], unknowns: list[sp.Symbol]
 ) -> dict[sp.Symbol, sp.Expr]:
     """The block's ``unknowns`` solved from its ``residuals`` (errors name ``model_name`` and list ``eqs``)."""
-    key = (tuple(residuals), tuple(unknowns))
-    solved = _SOLVED.pop(key, None)
-    if solved is None:
-        solved = _solve_block_anew(model_name, eqs, residuals, unknowns)
-        if len(_SOLVED) >= _SOLVED_KEPT:
-            _SOLVED.pop(next(iter(_SOLVED)))
-    _SOLVED[key] = solved
-    return dict(solved)
+    return dict(_SOLVED.get((tuple(residuals), tuple(unknowns)),
+                            lambda: _solve_block_anew(model_name, eqs, residuals, unknowns)))
 
 
 def _solve_block_anew(

@@ -104,6 +104,7 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
     from physmend.cpus import side_by_side
     from physmend.stages import diagnose, mask, propose, sensitivity, sweep, symbolic
     from physmend.sweep import hydra_value, standby
+    from physmend.sweep.workers import worker_overrides
 
     cfg = sweep_settings(cfg, overrides)
     ids: list[tuple[str, str]] = []
@@ -119,19 +120,21 @@ def run(cfg: Any, source_run_id: str | None = None, *, overrides: Sequence[str] 
         clock = now
         print(banner.format(f"{number}/6 {name}"))
 
-    # the sweep's extra workers import while diagnose runs (physmend.sweep.standby): this process
-    # works beside them from now on (threads: auto, its share of the CPUs)
-    early = standby.start(int(cfg.sweep.workers) - 1) if overrides is not None else []
+    sweep_overrides = None
+    given = {_key(o) for o in overrides or ()}
+    if overrides is not None:
+        sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
+                                         for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
+    # the sweep's extra workers import, and prepare their first trial, while diagnose runs
+    # (physmend.sweep.standby): this process works beside them from now on (threads: auto, its share)
+    early = standby.start(int(cfg.sweep.workers) - 1) if sweep_overrides is not None else []
+    if sweep_overrides is not None:
+        standby.brief(early, worker_overrides(sweep_overrides), None if config_dir is None else str(config_dir))
     try:
         stage(1, "diagnose")
         with side_by_side(len(early) + 1):
             ids.append(("diagnose", diagnose.run(cfg, source_run_id)))
         stage(2, "sweep")
-        sweep_overrides = None
-        given = {_key(o) for o in overrides or ()}
-        if overrides is not None:
-            sweep_overrides = [*overrides, *(f"sweep.{k}={hydra_value(cfg.sweep[k])}"
-                                             for k in SWEEP_KEYS if f"sweep.{k}" not in given)]
         sweep_id = sweep.run(cfg, ids[-1][1], overrides=sweep_overrides, config_dir=config_dir, given_wins=True,
                              standby=early, meanwhile=_for_later_stages(cfg))
     finally:

@@ -4,6 +4,15 @@ waits for its command line on stdin — one line of JSON, ``{"argv": [...], "env
 by the process that started it (:func:`physmend.sweep.workers._start_workers`) — and runs it as
 ``physmend`` would. Closed stdin without a line: it exits, having run nothing.
 
+Before it, the process that started it may tell it the sweep it will join (:func:`brief`: a line
+``{"prepare": {"overrides": [...], "config_dir": ...}}``). While it waits it then does what its
+first trial would do before training, where this process keeps it (:func:`_prepare`): the
+configuration composed, the model built and compiled (:func:`physmend.problem.load_problem`), the
+stores' modules imported (:func:`physmend.tracking.store.preload`; no store is opened) and the
+warm start's smoothing of the records (:func:`physmend.ude.train.prepare`). The cargo box's worker
+started training ~9 s after the sweep asked for it where it did all this then. Nothing it prepares
+changes a result; a failure in it is only time lost (the command does the same and reports).
+
 ``physmend discover`` starts its sweep's extra workers this way before its diagnose stage, so that
 they train from the moment the sweep asks for them instead of importing first (about 5 s of a
 worker's start on 2 cores; 12 s where nothing is byte-compiled yet), and compile the training
@@ -45,6 +54,22 @@ def hand(proc: subprocess.Popen, argv: list[str], env: dict[str, str]) -> subpro
     return proc
 
 
+def brief(procs: list[subprocess.Popen], overrides: list[str], config_dir: str | None) -> None:
+    """Tell standby processes ``procs`` the sweep worker's overrides and config folder they will be
+    handed (:func:`physmend.sweep.workers.worker_overrides`), for them to prepare while they wait;
+    one that can no longer listen is skipped (it will not be handed a command line either)."""
+    line = json.dumps({"prepare": {"overrides": [str(o) for o in overrides],
+                                   "config_dir": None if config_dir is None else str(config_dir)}}) + "\n"
+    for proc in procs:
+        if proc.stdin is None or proc.stdin.closed or proc.poll() is not None:
+            continue
+        try:
+            proc.stdin.write(line)
+            proc.stdin.flush()
+        except OSError:
+            continue
+
+
 def release(procs: list[subprocess.Popen]) -> None:
     """End the standby processes never handed a command line (they have run nothing); those handed
     one are the sweep's workers, which the sweep waits for or ends itself."""
@@ -75,10 +100,14 @@ def _wait_and_run() -> int:
     warm()
     for name in PRELOAD:
         importlib.import_module(name)
-    line = sys.stdin.readline()
-    if not line.strip():
-        return 0  # released unused
-    order: dict[str, Any] = json.loads(line)
+    while True:
+        line = sys.stdin.readline()
+        if not line.strip():
+            return 0  # released unused
+        order: dict[str, Any] = json.loads(line)
+        if "prepare" not in order:
+            break
+        _prepare(order["prepare"])
     os.environ.update({str(k): str(v) for k, v in order.get("env", {}).items()})
     sys.argv = ["physmend", *(str(a) for a in order["argv"])]
     import runpy
@@ -88,6 +117,22 @@ def _wait_and_run() -> int:
         warnings.filterwarnings("ignore", message=r"'physmend\.cli' found in sys\.modules", category=RuntimeWarning)
         runpy.run_module("physmend.cli", run_name="__main__")  # `physmend <argv>`: exits with its status
     return 0
+
+
+def _prepare(sweep: dict[str, Any]) -> None:
+    """What the first trial of the sweep ``sweep`` (:func:`brief`'s message) does before training,
+    done now and kept in this process (see the module docstring)."""
+    try:
+        from physmend.config import compose
+        from physmend.problem import load_problem
+        from physmend.tracking.store import preload
+        from physmend.ude.train import prepare
+
+        preload()
+        cfg = compose([str(o) for o in sweep.get("overrides") or []], user_config_dir=sweep.get("config_dir"))
+        prepare(cfg, load_problem(cfg))
+    except Exception:  # noqa: BLE001 - only time is lost: the command does the same and reports what fails
+        return
 
 
 if __name__ == "__main__":

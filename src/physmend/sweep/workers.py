@@ -116,6 +116,11 @@ PROBED_ENV = "PHYSMEND_SWEEP_PROBED"
 every choice of its space with its command line already (``probe_space``), so they do not again."""
 
 
+def worker_overrides(overrides: Sequence[str]) -> list[str]:
+    """The overrides a sweep's extra worker process is started with, given the sweep's own."""
+    return [*overrides, "sweep.workers=1", "sweep.progress=false"]
+
+
 def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[str], config_dir: str | Path | None,
                    given_wins: bool = False, standby: Sequence[Any] = ()) -> list[Any]:
     """``count`` more ``physmend sweep`` processes on the same study (each told its share of the CPUs), started
@@ -124,8 +129,7 @@ def _start_workers(count: int, source_run_id: str | None, overrides: Sequence[st
     if count < 1:
         return []
     args = ["sweep", *([source_run_id] if source_run_id else []),
-            *(["--config-dir", str(config_dir)] if config_dir is not None else []),
-            *overrides, "sweep.workers=1", "sweep.progress=false"]
+            *(["--config-dir", str(config_dir)] if config_dir is not None else []), *worker_overrides(overrides)]
     from physmend.cpus import threads
     from physmend.sweep import standby as waiting
 

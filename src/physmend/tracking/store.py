@@ -63,6 +63,26 @@ def _folder_lock(folder: Path | None) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
+#: what opening the stores imports (MLflow, its SQL store and migrations; Optuna's RDB storage's
+#: tables): seconds where nothing is byte-compiled yet
+STORE_MODULES = ("mlflow", "mlflow.tracking", "mlflow.store.tracking.sqlalchemy_store", "alembic.command",
+                 "optuna.storages._rdb.models")
+
+
+def preload() -> None:
+    """Import :data:`STORE_MODULES` ahead of opening a store, touching no store (a process that
+    waits for its work does it: :mod:`physmend.sweep.standby`). A module another version lays
+    out differently is skipped: opening the store imports what it needs then."""
+    import importlib
+
+    quiet_mlflow()
+    for name in STORE_MODULES:
+        try:
+            importlib.import_module(name)
+        except Exception:  # noqa: BLE001 - only time is at stake; open_store reports real trouble
+            continue
+
+
 def quiet_mlflow() -> None:
     """Keep MLflow's own console lines off physmend's output: with a tracking server MLflow writes
     "🏃 View run … / 🧪 View experiment …" to stdout at every run's end (two lines per trial;

@@ -18,7 +18,7 @@ from physmend.sweep.report import EpochProgress, Reporter, _log_result, _say
 from physmend.sweep.restart import RESTARTS_ATTR, interrupted
 from physmend.sweep.settings import Settings, shape_keys
 from physmend.sweep.space import SearchSpace
-from physmend.sweep.storage import REASON_ATTR, WORKER_ATTR, Tally
+from physmend.sweep.storage import REASON_ATTR, WORKER_ATTR, Tally, asking
 from physmend.sweep.workers import Heartbeat
 from physmend.tracking.marks import RUN_NAME_TAG, trial_name
 
@@ -34,6 +34,7 @@ class StackedTrials:
     settings: Settings
     space: SearchSpace
     study: Any
+    storage: Any
     store: Store
     parent_run_id: str
     configs: TrialConfigs
@@ -76,7 +77,8 @@ class StackedTrials:
                     warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
                     sampler = optuna.samplers.PartialFixedSampler(shared, sampler)
             self.study.sampler = sampler
-            trial = self.study.ask()
+            with asking(self.storage):
+                trial = self.study.ask()
             trial.set_user_attr(WORKER_ATTR, self.me)
             if self._surplus(trial):
                 trial.set_user_attr(REASON_ATTR, "surplus")

@@ -22,7 +22,7 @@ from physmend.sweep.report import EpochProgress, Reporter, _log_result, _say, _s
 from physmend.sweep.restart import interrupted, one_line
 from physmend.sweep.settings import Settings
 from physmend.sweep.space import SearchSpace
-from physmend.sweep.storage import REASON_ATTR, RUN_ID_ATTR, WORKER_ATTR, _uncounted, tally
+from physmend.sweep.storage import REASON_ATTR, RUN_ID_ATTR, WORKER_ATTR, _uncounted, asking, tally
 from physmend.sweep.workers import Heartbeat, is_stale, this_worker
 from physmend.tracking.marks import RUN_NAME_TAG, trial_name
 
@@ -164,7 +164,8 @@ class Sweep(StackedTrials):
 
         n_before = len(self.study.get_trials(deepcopy=False))
         self.study.sampler = self.settings.sampler_for(n_before)
-        trial = self.study.ask()
+        with asking(self.storage):
+            trial = self.study.ask()
         trial.set_user_attr(WORKER_ATTR, self.me)
         if self._surplus(trial):
             trial.set_user_attr(REASON_ATTR, "surplus")

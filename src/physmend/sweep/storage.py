@@ -4,9 +4,10 @@ resume, and the tally of trials that count towards ``sweep.n_trials``.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -67,6 +68,24 @@ def open_storage(url: str) -> "optuna.storages.RDBStorage":
     except (ImportError, ValueError, optuna.exceptions.OptunaError) as exc:
         raise TrackingError(f"tracking.optuna_storage {url!r} cannot be opened: {exc}") from None
 
+
+
+@contextlib.contextmanager
+def asking(storage: Any) -> Iterator[None]:
+    """Around ``study.ask()``: one process at a time where ``storage`` is a sqlite file.
+
+    Optuna hands an enqueued (WAITING) trial to the process that sets it RUNNING, reading it with
+    ``SELECT … FOR UPDATE``; sqlite has no row lock, so two workers asking at once both read it
+    WAITING and both train it (seen: discover's two workers, ready at the same moment, both ran
+    trial 0, and its other trials then ran one after another). A database server locks the row:
+    no lock is taken there. The lock is :func:`physmend.tracking.store.folder_lock` on the
+    database's folder (no file is created), held for the ask only."""
+    from physmend.tracking import sqlite_path
+    from physmend.tracking.store import folder_lock
+
+    db = sqlite_path(str(getattr(storage, "url", "")))
+    with folder_lock(db.parent if db is not None else None):
+        yield
 
 
 def _retry(fn: Callable[[], Any], attempts: int = 4) -> Any:

@@ -42,11 +42,14 @@ def sqlite_path(uri: str) -> Path | None:
 
 
 @contextlib.contextmanager
-def _folder_lock(folder: Path | None) -> Iterator[None]:
+def folder_lock(folder: Path | None) -> Iterator[None]:
     """Exclusive lock on ``folder`` (POSIX ``flock`` on the directory itself: no file is created).
 
     MLflow creates and migrates a new sqlite database on first use; two processes doing that at
-    once (sweep workers started together) collide. Elsewhere (no folder, no ``fcntl``) a no-op.
+    once (sweep workers started together) collide; two sweep workers asking for the same waiting
+    trial of a sqlite study both get it (:func:`physmend.sweep.storage.asking`). Elsewhere (no
+    folder, no ``fcntl``) a no-op. Never nested in one process (a second descriptor's lock would
+    wait for the first).
     """
     try:
         import fcntl
@@ -213,7 +216,7 @@ def open_store(tracking_cfg: Any) -> Store:
 
     try:
         mlflow.set_tracking_uri(uri)
-        with _folder_lock(db.parent if db is not None else None):  # workers starting together: one creates
+        with folder_lock(db.parent if db is not None else None):  # workers starting together: one creates
             client = MlflowClient(tracking_uri=uri)
             exp = client.get_experiment_by_name(name)
             if exp is None:

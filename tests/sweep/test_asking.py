@@ -47,3 +47,16 @@ def test_two_workers_asking_at_once_never_get_the_same_waiting_trial(tmp_path: P
     numbers = sorted(got[0] + got[1])
     assert numbers == list(range(2 * ASKS)), got  # every waiting trial to exactly one worker
     assert not list(tmp_path.glob("*lock*"))  # the lock is on the folder: no file left beside the database
+
+
+def test_a_folder_that_cannot_be_locked_asks_as_optuna_alone(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from physmend.sweep.storage import asking
+
+    entered = []
+    with asking(SimpleNamespace(url=f"sqlite:///{tmp_path / 'gone' / 'optuna.db'}")):  # no such folder: no lock
+        entered.append(1)
+    with asking(SimpleNamespace(url="postgresql://db.example/optuna")):  # a server locks its rows itself
+        entered.append(2)
+    assert entered == [1, 2]

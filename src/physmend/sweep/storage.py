@@ -84,7 +84,7 @@ def asking(storage: Any) -> Iterator[None]:
     from physmend.tracking.store import folder_lock
 
     db = sqlite_path(str(getattr(storage, "url", "")))
-    with folder_lock(db.parent if db is not None else None):
+    with folder_lock(db.parent if db is not None else None, required=False):  # no lock: as Optuna alone
         yield
 
 

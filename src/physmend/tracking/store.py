@@ -42,14 +42,15 @@ def sqlite_path(uri: str) -> Path | None:
 
 
 @contextlib.contextmanager
-def folder_lock(folder: Path | None) -> Iterator[None]:
+def folder_lock(folder: Path | None, *, required: bool = True) -> Iterator[None]:
     """Exclusive lock on ``folder`` (POSIX ``flock`` on the directory itself: no file is created).
 
     MLflow creates and migrates a new sqlite database on first use; two processes doing that at
     once (sweep workers started together) collide; two sweep workers asking for the same waiting
     trial of a sqlite study both get it (:func:`physmend.sweep.storage.asking`). Elsewhere (no
-    folder, no ``fcntl``) a no-op. Never nested in one process (a second descriptor's lock would
-    wait for the first).
+    folder, no ``fcntl``) a no-op; ``required=False``: also where the folder cannot be locked (a
+    file system without ``flock``), instead of raising ``OSError``. Never nested in one process (a
+    second descriptor's lock would wait for the first).
     """
     try:
         import fcntl
@@ -58,9 +59,19 @@ def folder_lock(folder: Path | None) -> Iterator[None]:
     if folder is None or fcntl is None:
         yield
         return
-    fd = os.open(folder, os.O_RDONLY)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        if required:
+            raise
+        yield
+        return
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError:
+            if required:
+                raise
         yield
     finally:
         os.close(fd)  # releases the lock

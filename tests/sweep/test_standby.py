@@ -1,50 +1,43 @@
-"""A standby worker told its sweep ahead (:func:`physmend.sweep.standby.brief`) prepares its first
-trial while it waits: the model compiled and the records smoothed in that process, the training
-after it the same as one without; a preparation that fails costs nothing but time, and the command
-line handed afterwards runs. Real processes, real training."""
+"""A standby worker told its sweep ahead (:func:`physmend.sweep.standby.brief`) prepares what the
+command does before its first trial while it waits: the stores' modules imported (no store opened),
+the model compiled and kept for the command; a preparation that fails costs nothing but time, and
+the command line handed afterwards runs. Real processes."""
 
 from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
-import numpy as np
 import pytest
 
-import physmend.ude.warmstart as warmstart
 from physmend import prestart
 from physmend import problem as problem_module
 from physmend.config import compose
 from physmend.problem import load_problem
 from physmend.sweep import standby
-from physmend.ude import train
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=10",
         "train.eval_every=5", "simulate.rtol=1e-6", "simulate.atol=1e-7", "ude.depth=1"]
 
 
-def test_the_preparation_keeps_what_the_first_training_needs_and_changes_nothing(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    import scipy.interpolate
-
-    cfg = compose(TINY)
+def test_the_preparation_compiles_the_model_the_command_then_reuses(monkeypatch: pytest.MonkeyPatch) -> None:
+    compiled: list[int] = []
+    real = problem_module.compile_model
+    monkeypatch.setattr(problem_module, "compile_model", lambda *a, **k: compiled.append(1) or real(*a, **k))
     problem_module._COMPILED.clear()
-    warmstart._SMOOTHED.clear()
-    warmstart.forget_warm_starts()
-    alone = train(cfg, load_problem(cfg))  # empty caches: everything computed in the training
-    problem_module._COMPILED.clear()
-    warmstart._SMOOTHED.clear()
-
-    warmstart.forget_warm_starts()  # the second training fits its own warm start, as a new process would
     standby._prepare({"overrides": TINY, "config_dir": None})
-    assert len(problem_module._COMPILED) == 1 and warmstart._SMOOTHED  # compiled and smoothed, kept
-    fits: list[int] = []
-    real = scipy.interpolate.make_smoothing_spline
-    monkeypatch.setattr(scipy.interpolate, "make_smoothing_spline", lambda *a, **k: fits.append(1) or real(*a, **k))
-    after = train(cfg, load_problem(cfg))
-    assert fits == []  # the training smoothed nothing again
-    assert after.val_rmse == alone.val_rmse
-    np.testing.assert_equal(after.history, alone.history)  # every checkpoint's numbers (NaN where no loss yet)
+    assert compiled == [1] and len(problem_module._COMPILED) == 1  # compiled once, and kept in this process
+    problem = load_problem(compose(TINY))  # what the command does before its first trial: nothing compiled again
+    assert compiled == [1] and problem.compiled.state_names == ["mass.x", "mass.v"]
+
+
+def test_preloading_the_stores_imports_their_modules_and_opens_none(tmp_path: Path) -> None:
+    code = ("import sys; from physmend.tracking.store import STORE_MODULES, preload; preload(); "
+            "print(all(m in sys.modules for m in STORE_MODULES))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and out.stdout.strip() == "True", out.stderr
+    assert not list(tmp_path.iterdir())  # no store, no file
 
 
 def test_a_preparation_that_fails_costs_nothing_and_the_command_line_still_runs() -> None:

@@ -5,13 +5,16 @@ by the process that started it (:func:`physmend.sweep.workers._start_workers`) â
 ``physmend`` would. Closed stdin without a line: it exits, having run nothing.
 
 Before it, the process that started it may tell it the sweep it will join (:func:`brief`: a line
-``{"prepare": {"overrides": [...], "config_dir": ...}}``). While it waits it then does what its
-first trial would do before training, where this process keeps it (:func:`_prepare`): the
-configuration composed, the model built and compiled (:func:`physmend.problem.load_problem`), the
-stores' modules imported (:func:`physmend.tracking.store.preload`; no store is opened) and the
-warm start's smoothing of the records (:func:`physmend.ude.train.prepare`). The cargo box's worker
-started training ~9 s after the sweep asked for it where it did all this then. Nothing it prepares
-changes a result; a failure in it is only time lost (the command does the same and reports).
+``{"prepare": {"overrides": [...], "config_dir": ...}}``). While it waits it then does what the
+command does before it asks for its first trial, where this process keeps it (:func:`_prepare`):
+the stores' modules imported (:func:`physmend.tracking.store.preload`; no store is opened), the
+configuration composed and the model built and compiled (:func:`physmend.problem.load_problem`).
+The cargo box's worker asked for its first trial ~8 s after the sweep started it where it did
+all this then, and two workers meant to start their first trials together ran them one after the
+other. Only what comes before that ask is prepared: work of the trial itself (the warm start's
+smoothing, say) done here would delay the ask where the command line comes early. Nothing it
+prepares changes a result; a failure in it is only time lost (the command does the same and
+reports).
 
 ``physmend discover`` starts its sweep's extra workers this way before its diagnose stage, so that
 they train from the moment the sweep asks for them instead of importing first (about 5 s of a
@@ -124,13 +127,14 @@ def _prepare(sweep: dict[str, Any]) -> None:
     done now and kept in this process (see the module docstring)."""
     try:
         from physmend.config import compose
+        from physmend.cpus import side_by_side
         from physmend.problem import load_problem
         from physmend.tracking.store import preload
-        from physmend.ude.train import prepare
 
         preload()
         cfg = compose([str(o) for o in sweep.get("overrides") or []], user_config_dir=sweep.get("config_dir"))
-        prepare(cfg, load_problem(cfg))
+        with side_by_side(1):  # as the command loads it (sweep.workers=1 in a worker's overrides)
+            load_problem(cfg)
     except Exception:  # noqa: BLE001 - only time is lost: the command does the same and reports what fails
         return
 

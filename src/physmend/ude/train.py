@@ -62,25 +62,6 @@ def train(cfg: Any, problem: Problem, *, report: Callable[[int, dict[str, float]
     return result.on_cpu()
 
 
-def prepare(cfg: Any, problem: Problem) -> None:
-    """Do ahead what every training of ``problem`` with ``cfg``'s settings computes before its
-    network matters, where it is kept for the trainings after it in this process: the warm start's
-    smoothing of the measured records (:func:`~physmend.ude.warmstart.forced_trajectories`; cached
-    by the records and the time grid). A sweep worker started early does it while it waits for its
-    first trial (:mod:`physmend.sweep.standby`). Changes no result: a training computes the same."""
-    from physmend.ude.timescale import resolve_settings
-    from physmend.ude.warmstart import forced_trajectories
-
-    settings = training_settings(cfg)
-    if settings.train.warm_start == "none":
-        return
-    with placed(problem.device), torch.no_grad():
-        ref = reference(problem, settings, bounded=True)
-        resolved = resolve_settings(settings, problem, ref)
-        hybrid = HybridModel(problem.compiled, build_spec(resolved, problem, ref), problem.dtype)
-        forced_trajectories(problem, ref.batch, hybrid, float(resolved.train.step))
-
-
 def _train(settings: Any, problem: Problem, report: Callable[[int, dict[str, float]], None] | None) -> TrainResult:
     """:func:`train` on the current default device, from checked settings."""
     from physmend.ude.timescale import check_budget, resolve_settings

@@ -50,3 +50,13 @@ def test_a_discover_that_fails_before_its_sweep_ends_its_early_worker(
     assert "discover.workers" in capsys.readouterr().err
     assert not prestart._EARLY and all(p.poll() is not None for p in spawned)
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_releasing_a_worker_that_never_read_what_it_was_sent_raises_nothing(spawned: list[subprocess.Popen]) -> None:
+    procs = prestart.spawn(1)
+    procs[0].kill()
+    procs[0].wait()
+    assert procs[0].stdin is not None
+    procs[0].stdin.write('{"prepare": {}}\n')  # buffered here, never delivered: the process is gone
+    prestart.release(procs)  # its pipe is broken: closing it is no error
+    assert procs[0].stdin.closed

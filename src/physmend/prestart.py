@@ -47,7 +47,10 @@ def release(procs: list[subprocess.Popen]) -> None:
         if proc.stdin is not None and not proc.stdin.closed:
             proc.kill()
             proc.wait()
-            proc.stdin.close()
+            try:
+                proc.stdin.close()
+            except OSError:  # a brief it never read (physmend.sweep.standby.brief): nothing to deliver
+                pass
 
 
 def release_early() -> None:

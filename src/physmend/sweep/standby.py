@@ -123,8 +123,8 @@ def _wait_and_run() -> int:
 
 
 def _prepare(sweep: dict[str, Any]) -> None:
-    """What the first trial of the sweep ``sweep`` (:func:`brief`'s message) does before training,
-    done now and kept in this process (see the module docstring)."""
+    """What the command of the sweep ``sweep`` (:func:`brief`'s message) does before it asks for its
+    first trial, done now and kept in this process (see the module docstring)."""
     try:
         from physmend.config import compose
         from physmend.cpus import side_by_side

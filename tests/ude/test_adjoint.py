@@ -50,6 +50,30 @@ def test_gradcheck_every_activation(activation: str) -> None:
     assert torch.autograd.gradcheck(_call(activation, kw), tensors, eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
+def test_gradcheck_one_activation_per_model() -> None:
+    """A stack whose models have different activations (a sweep group's trials) is one solve, each
+    model with its own: autograd's gradients, and each model's rows the trajectory it has alone."""
+    from physmend.ude import adjoint
+
+    mixed = ("gelu", "tanh", "tanh", "softplus")
+    tensors, kw = _problem(M=4, S=2, box=False)
+    before = adjoint.LOOPS["compiled"]
+    adjoint.LOOPS["compiled"] = False  # the torch loops (test_rk4_loops.py holds the compiled ones to them)
+    try:
+        assert torch.autograd.gradcheck(_call(mixed, kw), tensors, eps=1e-6, atol=1e-7, rtol=1e-5)
+    finally:
+        adjoint.LOOPS["compiled"] = before
+    with torch.no_grad():
+        traj = _call(mixed, kw)(*tensors)
+        for name in set(mixed):
+            alone = _call(name, kw)(*tensors)
+            rows = [r for r in range(8) if mixed[r // 2] == name]
+            torch.testing.assert_close(traj[:, rows], alone[:, rows], rtol=1e-13, atol=1e-13)
+            assert not torch.allclose(traj, alone)  # the other models' rows are not this activation's
+    with pytest.raises(ValueError, match="one activation per model is needed \\(4 models\\), but got"):
+        _call(mixed[:3], kw)(*tensors)
+
+
 @pytest.mark.parametrize("shape", [{"reads": [0, 2], "index": [1]}, {"M": 1, "S": 2}, {"box": True}],
                          ids=["subsets", "one-model", "box"])
 def test_gradcheck_shapes(shape: dict) -> None:
@@ -105,7 +129,8 @@ def test_the_hybrid_solve_is_the_drive_solve(user_project: Path, monkeypatch: py
 
 def test_training_with_the_adjoint_is_training_with_autograd(short_project: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """``train.backward: adjoint`` trains the same models as autograd, alone and in a stack (the
-    gradients agree to rounding; a few epochs of Adam keep them within ~1e-9)."""
+    gradients agree to rounding; a few epochs of Adam keep them within ~1e-9), a stack of models
+    with different activations included."""
     from physmend.problem import load_problem
     from physmend.ude import TrainResult, train
     from physmend.ude.adjoint import STATS
@@ -114,7 +139,8 @@ def test_training_with_the_adjoint_is_training_with_autograd(short_project: Path
 
     monkeypatch.chdir(short_project)
     trials = [["seed=1", "ude.width=8", "ude.depth=2", "ude.activation=tanh", "train.lr=0.02"],
-              ["seed=2", "ude.width=12", "ude.depth=2", "ude.activation=tanh", "train.lr=0.01"]]
+              ["seed=2", "ude.width=12", "ude.depth=2", "ude.activation=tanh", "train.lr=0.01"],
+              ["seed=3", "ude.width=8", "ude.depth=2", "ude.activation=gelu", "train.lr=0.01"]]
 
     def run(backward: str) -> list[TrainResult]:
         forget_warm_starts()
@@ -126,7 +152,7 @@ def test_training_with_the_adjoint_is_training_with_autograd(short_project: Path
     want = run("autograd")
     assert STATS["solves"] == before  # autograd: not used
     got = run("adjoint")
-    assert STATS["solves"] == before + 2 * 4  # every epoch (train.epochs=4) of the single model and of the stack
+    assert STATS["solves"] == before + 2 * 4  # every epoch (train.epochs=4) of the single model and of the (mixed) stack
     for a, b in zip(got, want):
         assert isinstance(a, TrainResult) and isinstance(b, TrainResult)
         ours, theirs = a.hybrid.state_dict(), b.hybrid.state_dict()

@@ -61,6 +61,18 @@ def test_compiled_loops_are_the_torch_loops(activation: str, shape: dict) -> Non
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11, msg=f"input {i}")
 
 
+def test_one_activation_per_model_in_the_compiled_loops() -> None:
+    """Each model's rows with its own activation: the torch loops' numbers (tested against autograd)."""
+    mixed = ("relu", "gelu", "tanh")
+    tensors, kw = _problem(K=5, M=3, S=2)
+    want_traj, want = _solve(mixed, tensors, kw, compiled=False)
+    got_traj, got = _solve(mixed, tensors, kw, compiled=True)
+    torch.testing.assert_close(got_traj, want_traj, rtol=1e-12, atol=1e-13)
+    for a, b in zip(got, want):
+        assert float(b.abs().max()) > 0
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
 def test_float32_loops_are_the_torch_loops() -> None:
     tensors, kw = _problem(K=4)
     tensors = [t.detach().float().requires_grad_() for t in tensors]

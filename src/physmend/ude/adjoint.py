@@ -19,14 +19,14 @@ The right-hand side is the drive form of :mod:`physmend.ude.drive`, stacked over
 
 with ``A (R, n, n)``, drives ``d (H, R, n)`` and ``pre (H, M, S, h₁)`` at the ``H = 2K+1`` half
 steps, ``Wu (M, n_reads, h₁)``, hidden and output layers ``(W (M, a, b), b (M, 1, b))`` applied
-as ``baddbmm(b, y, W)``, one activation for every model and layer, ``gain`` broadcastable to
+as ``baddbmm(b, y, W)``, one activation per model (the same in every layer), ``gain`` broadcastable to
 ``(M, S, k)``. Each stage's state is held inside ``box = (lo, hi)`` (``clamp``) as
 :func:`physmend.ude.shooting.rk4_segments` does.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 import math
 
 import torch
@@ -58,6 +58,27 @@ _FUNCTIONS = {
     "gelu": torch.nn.functional.gelu,
 }
 ACTIVATIONS = tuple(_FUNCTIONS)
+
+
+def _each_model(activation: str | tuple[str, ...], table: dict) -> Callable[..., torch.Tensor]:
+    """``table[activation]``, or for one name per model a function that applies each model's own
+    to its slice of the model dimension (``(…, M, S, w)``, dimension -3)."""
+    if isinstance(activation, str):
+        return table[activation]
+    runs: list[tuple[str, int, int]] = []
+    for i, name in enumerate(activation):
+        if runs and runs[-1][0] == name:
+            runs[-1] = (name, runs[-1][1], i + 1)
+        else:
+            runs.append((name, i, i + 1))
+
+    def apply(*xs: torch.Tensor) -> torch.Tensor:
+        out = torch.empty_like(xs[0])
+        for name, start, end in runs:
+            out[..., start:end, :, :] = table[name](*(x[..., start:end, :, :] for x in xs))
+        return out
+
+    return apply
 #: solves run with the hand-written backward pass in this process (what tests check it was used)
 STATS = {"solves": 0}
 #: on the CPU, the time loops compiled (:class:`physmend.ude.compiled_solve.CompiledSolve`); False: written in torch (:class:`_Solve`)
@@ -77,7 +98,7 @@ class _Solve(torch.autograd.Function):
     @staticmethod
     def forward(ctx, meta, u0, A, d, pre, wu, gain, *layers):  # noqa: ANN001, ANN205
         h, steps, lo, hi, reads, index, activation = meta
-        act = _FUNCTIONS[activation]
+        act = _each_model(activation, _FUNCTIONS)
         M, S, _ = pre.shape[1:]
         R, n = u0.shape
         T = 4 * steps
@@ -143,7 +164,7 @@ class _Solve(torch.autograd.Function):
         A, wu, gain, *layers = ctx.saved_tensors
         weights = layers[0::2]
         h, steps, lo, hi, reads, index, activation = ctx.meta
-        act, dact = _FUNCTIONS[activation], _DERIVATIVES[activation]
+        act, dact = _each_model(activation, _FUNCTIONS), _each_model(activation, _DERIVATIVES)
         M, S, R, n = ctx.shape
         traj, V, PRE, OUT, UNHELD = ctx.stages
         boxed = lo is not None
@@ -234,7 +255,7 @@ class _Solve(torch.autograd.Function):
 
 def rk4_adjoint(u0: torch.Tensor, A: torch.Tensor, d: torch.Tensor, pre: torch.Tensor, wu: torch.Tensor,
                 layers: Sequence[tuple[torch.Tensor, torch.Tensor]], gain: torch.Tensor, *, h: float, steps: int,
-                activation: str, box: tuple[torch.Tensor, torch.Tensor] | None = None,
+                activation: str | Sequence[str], box: tuple[torch.Tensor, torch.Tensor] | None = None,
                 reads: torch.Tensor | None = None, index: torch.Tensor | None = None) -> torch.Tensor:
     """Fixed-step RK4 of the drive form (module docstring) over all rows at once: the states at
     the grid points ``(steps+1, R, n)``, with the hand-written backward pass.
@@ -242,9 +263,14 @@ def rk4_adjoint(u0: torch.Tensor, A: torch.Tensor, d: torch.Tensor, pre: torch.T
     ``u0 (R, n)``; ``A (R, n, n)``; ``d (2·steps+1, R, n)``; ``pre (2·steps+1, M, S, h1)``;
     ``wu (M, r, h1)``; ``layers``: ``(W (M, a, b), b (M, 1, b))`` after the first layer, the output
     layer last; ``gain`` broadcastable to ``(M, S, k)``; ``reads (r,)`` the state columns the network
-    reads and ``index (k,)`` the corrected ones (None: all, in order); ``h`` the step (s)."""
-    if activation not in _FUNCTIONS:
+    reads and ``index (k,)`` the corrected ones (None: all, in order); ``h`` the step (s);
+    ``activation`` one name for every model, or one per model (``M`` names)."""
+    names = [activation] if isinstance(activation, str) else list(activation)
+    if not set(names) <= set(_FUNCTIONS):
         raise ValueError(f"rk4_adjoint: activation must be one of {list(_FUNCTIONS)}, but got {activation!r}")
+    if not isinstance(activation, str) and len(names) != pre.shape[1]:
+        raise ValueError(f"rk4_adjoint: one activation per model is needed ({pre.shape[1]} models), but got {names}")
+    activation = names[0] if len(set(names)) == 1 else tuple(names)  # one name: every model's
     lo, hi = box if box is not None else (None, None)
     flat = [t for pair in layers for t in pair]
     STATS["solves"] += 1

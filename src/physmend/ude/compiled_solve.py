@@ -37,7 +37,7 @@ class CompiledSolve(torch.autograd.Function):
         _loop(rk4_loops, "forward", R)(float(h), u0.detach().contiguous().numpy(), A.transpose(1, 2).contiguous().numpy(),
                           d.detach().expand(H, R, n).contiguous().numpy(),
                           pre.detach().expand(H, M, S, w0).contiguous().numpy(), *(x.numpy() for x in fixed),
-                          rk4_loops.CODES[activation], S, boxed, box[0].numpy(), box[1].numpy(), traj.numpy(),
+                          rk4_loops.codes(activation, M), S, boxed, box[0].numpy(), box[1].numpy(), traj.numpy(),
                           Vs.numpy(), Z.numpy(), Y.numpy(), OUT.numpy(), MASK.numpy())
         ctx.meta, ctx.shape, ctx.gain_shape, ctx.dims = meta, (M, S, R, n, L, P), gain.shape, dims
         ctx.loops = (A, fixed, Vs, Z, Y, OUT, MASK)
@@ -56,7 +56,7 @@ class CompiledSolve(torch.autograd.Function):
         g_u0, G, GA = A.new_empty(R, n), SPARE.take((R, T, n), dt), SPARE.take((L + 1, R, T, P), dt)
         g_d, g_pre, g_gain = A.new_empty(H, R, n), A.new_empty(H, M, S, w0), A.new_empty(R, k)
         _loop(rk4_loops, "backward", R)(float(h), grad.detach().contiguous().numpy(), A.numpy(), wu.numpy(), W.numpy(),
-                           dims_t.numpy(), gain.numpy(), reads_t.numpy(), index_t.numpy(), rk4_loops.CODES[activation],
+                           dims_t.numpy(), gain.numpy(), reads_t.numpy(), index_t.numpy(), rk4_loops.codes(activation, M),
                            S, lo is not None, Z.numpy(), Y.numpy(), OUT.numpy(), MASK.numpy(), g_u0.numpy(),
                            G.numpy(), GA.numpy(), g_d.numpy(), g_pre.numpy(), g_gain.numpy())
 

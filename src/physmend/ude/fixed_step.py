@@ -60,7 +60,7 @@ class DriveForm:
     gain: torch.Tensor  # broadcastable to (M, S, k)
     reads: torch.Tensor | None
     index: torch.Tensor | None
-    activation: str
+    activation: str | tuple[str, ...]  # one for every model, or each model's
     models: int
 
 
@@ -83,11 +83,13 @@ def hybrid_form(hybrid: HybridModel, p: torch.Tensor, inputs: PiecewiseLinear, m
                      hybrid.spec.activation, 1)
 
 
-def applies(sim: dict, activation: str, device: torch.device) -> bool:
+def applies(sim: dict, activation: str | Sequence[str], device: torch.device) -> bool:
     """Whether :func:`rk4_states` may stand in for the solve ``sim`` (an adaptive method with no
-    options of its own but the clocks, on the CPU, an activation the compiled loops have)."""
+    options of its own but the clocks, on the CPU, activations the compiled loops have: one name,
+    or each model's)."""
+    names = [activation] if isinstance(activation, str) else activation
     return (sim["method"] in ADAPTIVE and set(sim["options"]) <= {"clocks"} and device.type == "cpu"
-            and activation in rk4_loops.CODES)
+            and all(a in rk4_loops.CODES for a in names))
 
 
 def rk4_states(form: DriveForm, u0: torch.Tensor, t: torch.Tensor, stops: Sequence[torch.Tensor] | None,
@@ -172,7 +174,7 @@ def _solve(form: DriveForm, u0: torch.Tensor, grid: torch.Tensor) -> tuple[torch
     chunk = max(8, CHUNK_ELEMENTS // (2 * (form.wu.shape[-1] * R + R * n)))
     traj, slope = u0.new_empty(K + 1, R, n), u0.new_empty(K + 1, R, n)
     Vs, Z, Y, OUT = u0.new_empty(R, 4, n), u0.new_empty(L, R, 4, P), u0.new_empty(L, R, 4, P), u0.new_empty(R, 4, k)
-    code = rk4_loops.CODES[form.activation]
+    code = rk4_loops.codes(form.activation, M)
     loop = _loop(rk4_steps, "steps", R)
     u = u0.detach().contiguous()
     with torch.no_grad():

@@ -28,13 +28,16 @@ output layer's at ``L``), and the sums over stages that belong to one half step 
 ``g_d (H, R, n)``, ``g_pre (H, M, S, w₀)``, ``g_gain (R, k)``. The weight and matrix gradients are
 products over all stages of these, taken in :mod:`physmend.ude.compiled_solve`.
 
-Activations are numbered as :data:`CODES`. NaN and infinity pass through as in torch (the fast
-math flags allow reassociation only), so a solve that blows up is seen as one.
+Activations are numbered as :data:`CODES`, one per model: ``codes (M,)`` (:func:`codes`; row ``r``
+uses model ``r // S``'s), so a stack of models with different activations is one solve. NaN and
+infinity pass through as in torch (the fast math flags allow reassociation only), so a solve that
+blows up is seen as one.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numba
 import numpy as np
@@ -42,6 +45,16 @@ import numpy as np
 #: the activations written here, by the number the loops take
 CODES = {"tanh": 0, "sigmoid": 1, "relu": 2, "softplus": 3, "silu": 4, "elu": 5, "gelu": 6}
 _FAST = {"reassoc", "contract", "nsz"}
+
+
+def codes(activation: str | Sequence[str], models: int) -> np.ndarray:
+    """Each model's activation number ``(models,)`` (:data:`CODES`), as the loops take them:
+    ``activation`` one name for every model, or one per model."""
+    names = [activation] * models if isinstance(activation, str) else list(activation)
+    if len(names) != models:
+        raise ValueError(f"rk4_loops.codes: one activation per model is needed ({models} models), "
+                         f"but got {len(names)}: {names}")
+    return np.array([CODES[a] for a in names], dtype=np.int64)
 _SQRT_HALF = 0.5**0.5
 _INV_SQRT_2PI = (2.0 * math.pi) ** -0.5
 
@@ -223,8 +236,9 @@ def _stage(r, t, c, alpha, du, boxed, lo, hi, Vs, MASK):  # noqa: ANN001, ANN202
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,  # noqa: ANN001, ANN202, PLR0913
+def _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S, boxed, lo, hi,  # noqa: ANN001, ANN202, PLR0913
                  traj, Vs, Z, Y, OUT, MASK):  # pragma: no cover - compiled
+    code = codes[r // S]
     n = u0.shape[1]
     steps = traj.shape[0] - 1
     k1 = np.empty(n, u0.dtype)
@@ -257,19 +271,19 @@ def _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code,
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def forward(h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,  # noqa: ANN001, ANN201, PLR0913
+def forward(h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S, boxed, lo, hi,  # noqa: ANN001, ANN201, PLR0913
             traj, Vs, Z, Y, OUT, MASK):  # pragma: no cover - compiled
     for r in range(u0.shape[0]):
-        _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,
+        _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S, boxed, lo, hi,
                      traj, Vs, Z, Y, OUT, MASK)
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy", parallel=True)
-def forward_threads(h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,  # noqa: ANN001, ANN201, PLR0913
+def forward_threads(h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S, boxed, lo, hi,  # noqa: ANN001, ANN201, PLR0913
                     traj, Vs, Z, Y, OUT, MASK):  # pragma: no cover - compiled
     """:func:`forward` with the rows shared among numba's threads."""
     for r in numba.prange(u0.shape[0]):
-        _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, boxed, lo, hi,
+        _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S, boxed, lo, hi,
                      traj, Vs, Z, Y, OUT, MASK)
 
 
@@ -326,8 +340,9 @@ def _sums(r, t, i, S, G, GA, OUT, index, g_d, g_pre, g_gain) -> None:  # noqa: A
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN202, PLR0913
+def _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN202, PLR0913
                   g_u0, G, GA, g_d, g_pre, g_gain):  # pragma: no cover - compiled
+    code = codes[r // S]
     n = g_u0.shape[1]
     steps = grad.shape[0] - 1
     lam = np.empty(n, grad.dtype)
@@ -374,23 +389,23 @@ def _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def backward(h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN201, PLR0913
+def backward(h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN201, PLR0913
              g_u0, G, GA, g_d, g_pre, g_gain):  # pragma: no cover - compiled
     g_d[:] = 0.0
     g_pre[:] = 0.0
     g_gain[:] = 0.0
     for r in range(g_u0.shape[0]):
-        _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,
+        _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxed, Z, Y, OUT, MASK,
                       g_u0, G, GA, g_d, g_pre, g_gain)
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy", parallel=True)
-def backward_threads(h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN201, PLR0913
+def backward_threads(h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN201, PLR0913
                      g_u0, G, GA, g_d, g_pre, g_gain):  # pragma: no cover - compiled
     """:func:`backward` with the rows shared among numba's threads (each row's sums are its own)."""
     g_d[:] = 0.0
     g_pre[:] = 0.0
     g_gain[:] = 0.0
     for r in numba.prange(g_u0.shape[0]):
-        _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, code, S, boxed, Z, Y, OUT, MASK,
+        _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxed, Z, Y, OUT, MASK,
                       g_u0, G, GA, g_d, g_pre, g_gain)

@@ -21,8 +21,9 @@ from physmend.ude.rk4_loops import _FAST, _rhs
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # noqa: ANN001, ANN202, PLR0913
+def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S,  # noqa: ANN001, ANN202, PLR0913
          traj, slope, Vs, Z, Y, OUT):  # pragma: no cover - compiled
+    code = codes[r // S]
     n = u0.shape[1]
     steps = hs.shape[1]
     k1 = np.empty(n, u0.dtype)
@@ -58,16 +59,16 @@ def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # 
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def steps(hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # noqa: ANN001, ANN201, PLR0913
+def steps(hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S,  # noqa: ANN001, ANN201, PLR0913
           traj, slope, Vs, Z, Y, OUT):  # pragma: no cover - compiled
     """Every row's steps, one row after another (module docstring)."""
     for r in range(u0.shape[0]):
-        _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, traj, slope, Vs, Z, Y, OUT)
+        _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S, traj, slope, Vs, Z, Y, OUT)
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy", parallel=True)
-def steps_threads(hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S,  # noqa: ANN001, ANN201, PLR0913
+def steps_threads(hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S,  # noqa: ANN001, ANN201, PLR0913
                   traj, slope, Vs, Z, Y, OUT):  # pragma: no cover - compiled
     """:func:`steps` with the rows shared among numba's threads."""
     for r in numba.prange(u0.shape[0]):
-        _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, traj, slope, Vs, Z, Y, OUT)
+        _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S, traj, slope, Vs, Z, Y, OUT)

@@ -119,7 +119,7 @@ class StackDrives:
         for a whole-trajectory solve by :func:`~physmend.ude.fixed_step.rk4_states`; None where
         the adjoint's form does not apply (:meth:`_adjoint`)."""
         h = self.template
-        if (not drivable(h) or any(u is not None for u in net.use) or len(set(net.activations)) != 1
+        if (not drivable(h) or any(u is not None for u in net.use)
                 or not all(mem.hybrid.spec.widths for mem in self.members)):
             return None
         bound = h.compiled.bind(p)
@@ -138,16 +138,16 @@ class StackDrives:
         wu = self._first_layer(net, m, p, inputs.values[:, :1].transpose(0, 1))[0]
         return DriveForm(bound.A, drive, wu.transpose(1, 2), list(zip(net.weights[1:], net.biases[1:])),
                          net.scale if coef is None else net.scale * coef.reciprocal().view(m, r, -1), reads, index,
-                         net.activations[0], m)
+                         tuple(net.activations), m)
 
     def _adjoint(self, net: StackedNet, m: int, p: torch.Tensor, u0: torch.Tensor, plan: Shooting,
                  shared: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor | None:
         """The training solve's trajectory ``(K+1, m·R, n)`` with the hand-written backward pass
         (``train.backward: adjoint``, :mod:`physmend.ude.adjoint`): the drive form of :meth:`_drive`
-        with one activation and one depth for the whole stack; None where that does not apply."""
+        with one depth for the whole stack (each model its own activation); None where that does not apply."""
         h = self.template
         if (self.members[0].cfg.train.backward != "adjoint" or not drivable(h) or any(u is not None for u in net.use)
-                or len(set(net.activations)) != 1 or net.activations[0] not in ADJOINT_ACTIVATIONS
+                or not set(net.activations) <= set(ADJOINT_ACTIVATIONS)
                 or not all(mem.hybrid.spec.widths for mem in self.members)):
             return None
         xs = plan.x_half
@@ -162,5 +162,5 @@ class StackDrives:
         gain = net.scale if coef is None else net.scale * coef.reciprocal().view(m, r, -1)
         reads, index = columns(h)
         return rk4_adjoint(u0, bound.A, d, pre, wu.transpose(1, 2), list(zip(net.weights[1:], net.biases[1:])), gain,
-                           h=plan.dt, steps=plan.steps, activation=net.activations[0], box=self.box, reads=reads,
+                           h=plan.dt, steps=plan.steps, activation=tuple(net.activations), box=self.box, reads=reads,
                            index=index)

@@ -35,14 +35,6 @@ class StackEvaluation:
         (:func:`~physmend.simulate.batch.own_stops`; each model then steps as if alone), otherwise
         solved apart per time grid (:func:`~physmend.ude.stack.plan.time_grid_parts`).
         """
-        acts = [self.members[i].hybrid.spec.activation for i in positions]
-        if len(set(acts)) > 1 and all(applies(sim, a, self.seg0.device) for a in acts):
-            # the fixed-step loops take one activation: a solve per activation (else one adaptive solve of all)
-            done: dict[int, tuple[dict[str, float], torch.Tensor] | BaseException] = {}
-            for act in dict.fromkeys(acts):
-                part = [i for i, a in zip(positions, acts) if a == act]
-                done.update(zip(part, self.evaluate(part, sim, full=full)))
-            return [done[i] for i in positions]
         m = len(positions)
         problem = self.problem if full else self.checked
         batch = self.full_batch if full else self.eval_batch

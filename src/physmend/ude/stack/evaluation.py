@@ -79,12 +79,13 @@ class StackEvaluation:
             """Rows model-major, the same experiments for every model (as every caller here builds them)."""
             p = self._parameters_for(rows.params[: rows.size // m], est, m)  # (M·R, n_params)
             names = self.problem.compiled.state_names
-            driven = self._drive_table(net, m, p, rows.inputs)
-            if driven is None:
-                states = simulate_with(guarded(self._rhs(net, m, p), limits, rows.ids, names), rows, u0, sim)
-            else:  # by fixed-step RK4 where that is within tolerance, else the adaptive solve
-                states = self._fixed_step(net, m, p, rows, u0, sim, limits)
-                if states is None:  # the same function with the input-dependent work done once per knot
+            # by fixed-step RK4 where that is within tolerance (it needs no drive table), else the adaptive solve
+            states = self._fixed_step(net, m, p, rows, u0, sim, limits)
+            if states is None:
+                driven = self._drive_table(net, m, p, rows.inputs)
+                if driven is None:
+                    states = simulate_with(guarded(self._rhs(net, m, p), limits, rows.ids, names), rows, u0, sim)
+                else:  # the same function with the input-dependent work done once per knot
                     states = simulate_with(guarded(driven[0], limits, rows.ids, names),
                                            dataclasses.replace(rows, inputs=driven[1]), u0, with_stops(sim, rows))
             return self.problem.compiled.outputs(states, rows.inputs.at(rows.t), p[None])

@@ -100,14 +100,23 @@ def check_same_shape(members: list[Member]) -> None:
 def drop_unstable_warm_starts(members: list[Member], initial: list[dict[str, Any]], ref: Reference,
                                plan: Shooting) -> None:
     """A member whose warm-started network leaves the finite range on its own segments goes back to
-    its network as initialised and trains without a warm start (as :func:`train` does)."""
+    its network as initialised and trains without a warm start (as :func:`train` does). Members of
+    one warm start (the same network, starts and estimates: trials that differ in their training
+    settings only) are checked once."""
     pinned, _, _ = pinned_starts(ref.batch, plan, members[0].hybrid.compiled.state_names)
     fixed_first = ref.batch.u0[plan.exp_index]
     params_seg = ref.batch.params[plan.exp_index]
     box = members[0].hybrid.spec.box(BOX_MARGIN, ref.batch.t.dtype)  # as the stack trains (states held in it)
+    finite: dict[str, bool] = {}  # by warm start
     for mem, state in zip(members, initial):
-        rhs = mem.hybrid.rhs(mem.hybrid.parameters_for(params_seg))
-        if not segments_finite(rhs, torch.where(pinned, fixed_first, mem.seg0), plan, box):
+        key = mem.warm_key
+        ok = None if key is None else finite.get(key)
+        if ok is None:
+            rhs = mem.hybrid.rhs(mem.hybrid.parameters_for(params_seg))
+            ok = segments_finite(rhs, torch.where(pinned, fixed_first, mem.seg0), plan, box)
+            if key is not None:
+                finite[key] = ok
+        if not ok:
             mem.hybrid.load_state_dict(state)
             mem.forced, mem.warm_key = None, None
             mem.lrs = lr_schedule(mem.cfg.train, warm=False)

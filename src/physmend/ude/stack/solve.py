@@ -281,19 +281,25 @@ class Stack(StackDrives, StackEvaluation):
         """After the batched warm start: the segment starts of every warm-started model that asks for
         it (``train.segment_starts: chained``) chained by its own hybrid, as train() does. They follow
         from the warm start and the shooting plan alone: a model whose warm start an earlier stack of
-        this process had, on the same plan, reuses that stack's chained starts."""
+        this process had, on the same plan, reuses that stack's chained starts; models of one warm
+        start in this stack are chained once."""
         want = [i for i, mem in enumerate(self.members) if mem.forced is not None and mem.cfg.train.chained]
         if not want:
             return
         name = ("chained", plan_key(self.plan))
-        todo = []
+        todo, same = [], {}  # same: a model whose warm start another in todo has -> that model
+        firsts: dict[str, int] = {}
         for i in want:
             key = self.members[i].warm_key
             stored = None if key is None else recall_derived(key, name)
-            if stored is None:
-                todo.append(i)
-            else:
+            if stored is not None:
                 self.seg0[i] = stored
+            elif key is not None and key in firsts:
+                same[i] = firsts[key]
+            else:
+                todo.append(i)
+                if key is not None:
+                    firsts[key] = i
         if not todo:
             return
         m = len(todo)
@@ -311,3 +317,5 @@ class Stack(StackDrives, StackEvaluation):
             key = self.members[i].warm_key
             if key is not None:
                 remember_derived(key, name, chained[j].clone())
+        for i, first in same.items():
+            self.seg0[i] = self.seg0[first]

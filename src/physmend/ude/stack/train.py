@@ -125,14 +125,22 @@ def _run(members: list[Member], problem: Problem, ref: Reference, plan: Shooting
     epochs = tc.epochs
 
     def checkpoint(positions: list[int], epoch: int, loss: torch.Tensor | None, fit: torch.Tensor | None,
-                   known: dict[int, dict[str, float]] | None = None) -> None:
+                   known: dict[int, dict[str, float]] | None = None, as_warm_started: bool = False) -> None:
         """Evaluate the models at ``positions`` (``known``: metrics of some already, by position); mark
-        those whose patience ran out or that failed as done."""
+        those whose patience ran out or that failed as done. ``as_warm_started``: no model has trained
+        yet, so models of one warm start (trials that differ in training settings only) are one model."""
         known = known or {}
         todo = [pos for pos in positions if pos not in known]
         outcomes: dict[int, tuple[dict[str, float], Any] | BaseException] = {pos: (known[pos], None) for pos in positions if pos in known}
         if todo:
-            outcomes.update(zip(todo, stack.evaluate(todo, sim)))
+            first: dict[int, int] = {}  # position -> the position evaluated for it
+            by_key: dict[str, int] = {}
+            for pos in todo:
+                key = stack.members[pos].warm_key if as_warm_started else None
+                first[pos] = pos if key is None else by_key.setdefault(key, pos)
+            solved = sorted(set(first.values()))
+            evaluated = dict(zip(solved, stack.evaluate(solved, sim)))
+            outcomes.update({pos: evaluated[first[pos]] for pos in todo})
         for pos in positions:
             outcome = outcomes[pos]
             mem = stack.members[pos]
@@ -174,7 +182,7 @@ def _run(members: list[Member], problem: Problem, ref: Reference, plan: Shooting
             stored = None if key is None else recall_derived(key, checked_name)
             if stored is not None and stored[0] is problem:
                 known[pos] = dict(stored[1])
-        checkpoint(warm_started, 0, None, None, known)
+        checkpoint(warm_started, 0, None, None, known, as_warm_started=True)
         drop_done()
     epoch = 0
     for epoch in range(1, epochs * tc.cycles + 1):

@@ -130,6 +130,21 @@ def test_buffers_are_reused_only_once_free() -> None:
     assert [id(t) for t in compiled_solve.SPARE.held] == before  # all freed: taken again, none added
 
 
+def test_buffers_of_an_earlier_shape_are_freed_once_unused() -> None:
+    """A solve of other shapes (a stack that lost models, a longer plan) frees the unused buffers
+    of the earlier ones: what is held is what the latest solve needed, each buffer once."""
+    compiled_solve.SPARE.held.clear()
+    a_tensors, kw = _problem(K=5)  # 4·5 = 20 stages
+    _call("tanh", kw)(*a_tensors).pow(2).sum().backward()
+    kinds = len(compiled_solve.SPARE.held)
+    assert kinds >= 5 and all(20 in t.shape for t in compiled_solve.SPARE.held)
+    b_tensors, kw = _problem(K=7)  # 28 stages
+    for _ in range(2):  # the second solve takes the first one's buffers again
+        _call("tanh", kw)(*b_tensors).pow(2).sum().backward()
+        held = compiled_solve.SPARE.held
+        assert len(held) == kinds and all(28 in t.shape and 20 not in t.shape for t in held)
+
+
 def test_tanh_is_the_c_library_tanh() -> None:
     import numba
 

@@ -9,6 +9,7 @@ import sys
 import threading
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 
 from physmend.ude import rk4_loops  # numba, imported with the trainer (not in the middle of a trial)
@@ -37,7 +38,7 @@ class CompiledSolve(torch.autograd.Function):
         _loop(rk4_loops, "forward", R)(float(h), u0.detach().contiguous().numpy(), A.transpose(1, 2).contiguous().numpy(),
                           d.detach().expand(H, R, n).contiguous().numpy(),
                           pre.detach().expand(H, M, S, w0).contiguous().numpy(), *(x.numpy() for x in fixed),
-                          rk4_loops.codes(activation, M), S, boxed, box[0].numpy(), box[1].numpy(), traj.numpy(),
+                          codes(activation, M), S, boxed, box[0].numpy(), box[1].numpy(), traj.numpy(),
                           Vs.numpy(), Z.numpy(), Y.numpy(), OUT.numpy(), MASK.numpy())
         ctx.meta, ctx.shape, ctx.gain_shape, ctx.dims = meta, (M, S, R, n, L, P), gain.shape, dims
         ctx.loops = (A, fixed, Vs, Z, Y, OUT, MASK)
@@ -56,7 +57,7 @@ class CompiledSolve(torch.autograd.Function):
         g_u0, G, GA = A.new_empty(R, n), SPARE.take((R, T, n), dt), SPARE.take((L + 1, R, T, P), dt)
         g_d, g_pre, g_gain = A.new_empty(H, R, n), A.new_empty(H, M, S, w0), A.new_empty(R, k)
         _loop(rk4_loops, "backward", R)(float(h), grad.detach().contiguous().numpy(), A.numpy(), wu.numpy(), W.numpy(),
-                           dims_t.numpy(), gain.numpy(), reads_t.numpy(), index_t.numpy(), rk4_loops.codes(activation, M),
+                           dims_t.numpy(), gain.numpy(), reads_t.numpy(), index_t.numpy(), codes(activation, M),
                            S, lo is not None, Z.numpy(), Y.numpy(), OUT.numpy(), MASK.numpy(), g_u0.numpy(),
                            G.numpy(), GA.numpy(), g_d.numpy(), g_pre.numpy(), g_gain.numpy())
 
@@ -75,6 +76,16 @@ class CompiledSolve(torch.autograd.Function):
             g_layers.append(torch.bmm(rows(Y[l], dims[l]).transpose(1, 2), up) if need[7 + 2 * l] else None)
             g_layers.append(up.sum(dim=1, keepdim=True) if need[8 + 2 * l] else None)
         return (None, g_u0, g_A, g_d if need[3] else None, g_pre if need[4] else None, g_wu, g_gain, *g_layers)
+
+
+def codes(activation: str | Sequence[str], models: int) -> np.ndarray:
+    """Each model's activation number ``(models,)`` (:data:`physmend.ude.rk4_loops.CODES`), as the
+    loops take them: ``activation`` one name for every model, or one per model."""
+    names = [activation] * models if isinstance(activation, str) else list(activation)
+    if len(names) != models:
+        raise ValueError(f"compiled_solve.codes: one activation per model is needed ({models} models), "
+                         f"but got {len(names)}: {names}")
+    return np.array([rk4_loops.CODES[a] for a in names], dtype=np.int64)
 
 
 def pack(wu: torch.Tensor, gain: torch.Tensor, layers: Sequence[torch.Tensor], reads: torch.Tensor | None,

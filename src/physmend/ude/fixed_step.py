@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import torch
 
 from physmend.simulate import PiecewiseLinear
-from physmend.ude.compiled_solve import _loop, pack
+from physmend.ude.compiled_solve import _loop, codes, pack
 from physmend.ude.drive import network_parts, columns, drivable, physics_drive
 from physmend.ude.hybrid import HybridModel
 from physmend.ude import rk4_loops, rk4_steps
@@ -174,7 +174,7 @@ def _solve(form: DriveForm, u0: torch.Tensor, grid: torch.Tensor) -> tuple[torch
     chunk = max(8, CHUNK_ELEMENTS // (2 * (form.wu.shape[-1] * R + R * n)))
     traj, slope = u0.new_empty(K + 1, R, n), u0.new_empty(K + 1, R, n)
     Vs, Z, Y, OUT = u0.new_empty(R, 4, n), u0.new_empty(L, R, 4, P), u0.new_empty(L, R, 4, P), u0.new_empty(R, 4, k)
-    code = rk4_loops.codes(form.activation, M)
+    activations = codes(form.activation, M)
     loop = _loop(rk4_steps, "steps", R)
     u = u0.detach().contiguous()
     with torch.no_grad():
@@ -183,7 +183,7 @@ def _solve(form: DriveForm, u0: torch.Tensor, grid: torch.Tensor) -> tuple[torch
             d, pre = form.drive(half[:, 2 * k0:2 * k1 + 1].T)
             H = 2 * (k1 - k0) + 1
             loop(hs[:, k0:k1].contiguous().numpy(), u.numpy(), At.numpy(), d.detach().expand(H, R, n).contiguous().numpy(),
-                 pre.detach().expand(H, M, S, pre.shape[-1]).contiguous().numpy(), *(x.numpy() for x in fixed), code, S,
+                 pre.detach().expand(H, M, S, pre.shape[-1]).contiguous().numpy(), *(x.numpy() for x in fixed), activations, S,
                  traj[k0:k1 + 1].numpy(), slope[k0:k1 + 1].numpy(), Vs.numpy(), Z.numpy(), Y.numpy(), OUT.numpy())
             u = traj[k1].contiguous()
     if not (bool(torch.isfinite(traj).all()) and bool(torch.isfinite(slope).all())):

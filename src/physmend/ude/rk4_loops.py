@@ -28,16 +28,14 @@ output layer's at ``L``), and the sums over stages that belong to one half step 
 ``g_d (H, R, n)``, ``g_pre (H, M, S, w₀)``, ``g_gain (R, k)``. The weight and matrix gradients are
 products over all stages of these, taken in :mod:`physmend.ude.compiled_solve`.
 
-Activations are numbered as :data:`CODES`, one per model: ``codes (M,)`` (:func:`codes`; row ``r``
-uses model ``r // S``'s), so a stack of models with different activations is one solve. NaN and
-infinity pass through as in torch (the fast math flags allow reassociation only), so a solve that
-blows up is seen as one.
+Activations are numbered as :data:`CODES`, one per model (``codes (M,)``, row ``r`` model ``r // S``'s:
+:func:`physmend.ude.compiled_solve.codes`), so models with different activations are one solve.
+NaN and infinity pass through as in torch (the fast math flags allow reassociation only).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
 import numba
 import numpy as np
@@ -46,15 +44,6 @@ import numpy as np
 CODES = {"tanh": 0, "sigmoid": 1, "relu": 2, "softplus": 3, "silu": 4, "elu": 5, "gelu": 6}
 _FAST = {"reassoc", "contract", "nsz"}
 
-
-def codes(activation: str | Sequence[str], models: int) -> np.ndarray:
-    """Each model's activation number ``(models,)`` (:data:`CODES`), as the loops take them:
-    ``activation`` one name for every model, or one per model."""
-    names = [activation] * models if isinstance(activation, str) else list(activation)
-    if len(names) != models:
-        raise ValueError(f"rk4_loops.codes: one activation per model is needed ({models} models), "
-                         f"but got {len(names)}: {names}")
-    return np.array([CODES[a] for a in names], dtype=np.int64)
 _SQRT_HALF = 0.5**0.5
 _INV_SQRT_2PI = (2.0 * math.pi) ** -0.5
 

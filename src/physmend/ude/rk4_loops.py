@@ -28,146 +28,21 @@ output layer's at ``L``), and the sums over stages that belong to one half step 
 ``g_d (H, R, n)``, ``g_pre (H, M, S, w₀)``, ``g_gain (R, k)``. The weight and matrix gradients are
 products over all stages of these, taken in :mod:`physmend.ude.compiled_solve`.
 
-Activations are numbered as :data:`CODES`, one per model (``codes (M,)``, row ``r`` model ``r // S``'s:
+Activations are numbered as :data:`CODES` (:mod:`physmend.ude.activation_loops`, written without
+the C library so that a layer's loop is vector instructions), one per model (``codes (M,)``, row ``r`` model ``r // S``'s:
 :func:`physmend.ude.compiled_solve.codes`), so models with different activations are one solve.
 NaN and infinity pass through as in torch (the fast math flags allow reassociation only).
 """
 
 from __future__ import annotations
 
-import math
-
 import numba
 import numpy as np
 
-#: the activations written here, by the number the loops take
-CODES = {"tanh": 0, "sigmoid": 1, "relu": 2, "softplus": 3, "silu": 4, "elu": 5, "gelu": 6}
-_FAST = {"reassoc", "contract", "nsz"}
+from physmend.ude.activation_loops import CODES, FAST, activate, times_derivative
 
-_SQRT_HALF = 0.5**0.5
-_INV_SQRT_2PI = (2.0 * math.pi) ** -0.5
-
-
-# Cephes' tanh for |x| < 0.625: x + x·z·P(z)/Q(z), z = x² (relative error ≤ 2.5e-16)
-_P0, _P1, _P2 = -9.64399179425052238628e-1, -9.92877231001918586564e1, -1.61468768441708447952e3
-_Q0, _Q1, _Q2 = 1.12811678491632931402e2, 2.23548839060100448583e3, 4.84406305325125486048e3
-# e^y = 2^k·e^r, r = y - k·ln 2 in two parts (Cody and Waite), e^r by its series to r¹⁴/14!
-_LN2_HI, _LN2_LO, _INV_LN2 = 6.93147180369123816490e-01, 1.90821492927058770002e-10, 1.44269504088896338700e00
-_E0 = 1.0
-_E1 = 1.0
-_E2 = 1.0 / 2
-_E3 = 1.0 / 6
-_E4 = 1.0 / 24
-_E5 = 1.0 / 120
-_E6 = 1.0 / 720
-_E7 = 1.0 / 5040
-_E8 = 1.0 / 40320
-_E9 = 1.0 / 362880
-_E10 = 1.0 / 3628800
-_E11 = 1.0 / 39916800
-_E12 = 1.0 / 479001600
-_E13 = 1.0 / 6227020800
-_E14 = 1.0 / 87178291200
-
-
-@numba.njit(cache=True, fastmath=_FAST, inline="always", error_model="numpy")
-def _tanh(x: float) -> float:  # pragma: no cover - compiled
-    """tanh with no call into the C library, so that a loop of it compiles to vector instructions
-    (3 ns against the C library's 23 ns per value here): Cephes' rational form below 0.625, else
-    ``1 - 2/(e^{2|x|} + 1)``, ``e^y = 2^k·e^r`` with ``2^k`` a product of exact powers of two chosen by
-    the bits of ``k``. At most 2 units in the last place from the C library's (torch's own: 2),
-    1 beyond |x| = 20, NaN kept."""
-    ax = abs(x)
-    z = x * x
-    small = x + x * z * (((_P0 * z + _P1) * z + _P2) / (((z + _Q0) * z + _Q1) * z + _Q2))
-    y = 2.0 * ax if ax < 20.0 else 40.0
-    k = np.int64(y * _INV_LN2 + 0.5)
-    r = (y - k * _LN2_HI) - k * _LN2_LO
-    e = _E14
-    e = _E13 + r * e
-    e = _E12 + r * e
-    e = _E11 + r * e
-    e = _E10 + r * e
-    e = _E9 + r * e
-    e = _E8 + r * e
-    e = _E7 + r * e
-    e = _E6 + r * e
-    e = _E5 + r * e
-    e = _E4 + r * e
-    e = _E3 + r * e
-    e = _E2 + r * e
-    e = _E1 + r * e
-    e = _E0 + r * e
-    p = 2.0 if k & 1 else 1.0
-    p = p * (4.0 if k & 2 else 1.0)
-    p = p * (16.0 if k & 4 else 1.0)
-    p = p * (256.0 if k & 8 else 1.0)
-    p = p * (65536.0 if k & 16 else 1.0)
-    p = p * (4294967296.0 if k & 32 else 1.0)
-    p = p * (18446744073709551616.0 if k & 64 else 1.0)
-    big = 1.0 - 2.0 / (p * e + 1.0)
-    big = big if x >= 0.0 else -big
-    out = small if ax < 0.625 else big
-    return out if x == x else x
-
-
-@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", inline="always")
-def _activate(code, Z, Y, l, r, t, width):  # noqa: ANN001, ANN202, PLR0913  # pragma: no cover - compiled
-    """``Y[l, r, t, :width] = act(Z[l, r, t, :width])``, one loop per activation (each compiles to
-    vector instructions). The loops index whole arrays: a slice would be a new array each time."""
-    if code == 0:
-        for c in range(width):
-            Y[l, r, t, c] = _tanh(Z[l, r, t, c])
-    else:
-        for c in range(width):
-            Y[l, r, t, c] = _act(code, Z[l, r, t, c])
-
-
-@numba.njit(cache=True, fastmath=_FAST, error_model="numpy", inline="always")
-def _times_derivative(code, Z, Y, GA, l, r, t, width):  # noqa: ANN001, ANN202, PLR0913  # pragma: no cover - compiled
-    """``GA[l, r, t, :width] *= act'(Z[l, r, t, :width])`` (``Y`` the activation's values)."""
-    if code == 0:
-        for c in range(width):
-            y = Y[l, r, t, c]
-            GA[l, r, t, c] *= 1.0 - y * y
-    else:
-        for c in range(width):
-            GA[l, r, t, c] *= _dact(code, Z[l, r, t, c], Y[l, r, t, c])
-
-
-@numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def _act(code: int, a: float) -> float:  # pragma: no cover - compiled
-    if code == 0:
-        return _tanh(a)
-    if code == 1:
-        return 1.0 / (1.0 + math.exp(-a))
-    if code == 2:
-        return a if a > 0.0 or a != a else 0.0
-    if code == 3:
-        return a if a > 20.0 else math.log1p(math.exp(a))
-    if code == 4:
-        return a / (1.0 + math.exp(-a))
-    if code == 5:
-        return a if a > 0.0 else math.expm1(a)
-    return 0.5 * a * (1.0 + math.erf(a * _SQRT_HALF))
-
-
-@numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def _dact(code: int, a: float, y: float) -> float:  # pragma: no cover - compiled
-    if code == 0:
-        return 1.0 - y * y
-    if code == 1:
-        return y * (1.0 - y)
-    if code == 2:
-        return 1.0 if a > 0.0 else 0.0
-    if code == 3:
-        return 1.0 / (1.0 + math.exp(-a))
-    if code == 4:
-        s = 1.0 / (1.0 + math.exp(-a))
-        return s * (1.0 + a * (1.0 - s))
-    if code == 5:
-        return 1.0 if a > 0.0 else y + 1.0
-    return 0.5 * (1.0 + math.erf(a * _SQRT_HALF)) + a * math.exp(-0.5 * a * a) * _INV_SQRT_2PI
+__all__ = ["CODES", "backward", "backward_threads", "forward", "forward_threads"]
+_FAST = FAST
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
@@ -184,7 +59,7 @@ def _rhs(r, t, i, Vs, du, At, d, pre, wu, W, b, dims, gain, reads, index, code, 
         vq = Vs[r, t, reads[q]]
         for c in range(w0):
             Z[0, r, t, c] += vq * wu[m, q, c]
-    _activate(code, Z, Y, 0, r, t, w0)
+    activate(code, Z, Y, 0, r, t, w0)
     for l in range(L - 1):
         a_in, a_out = dims[l], dims[l + 1]
         for c in range(a_out):
@@ -193,7 +68,7 @@ def _rhs(r, t, i, Vs, du, At, d, pre, wu, W, b, dims, gain, reads, index, code, 
             yq = Y[l, r, t, q]
             for c in range(a_out):
                 Z[l + 1, r, t, c] += yq * W[l, m, q, c]
-        _activate(code, Z, Y, l + 1, r, t, a_out)
+        activate(code, Z, Y, l + 1, r, t, a_out)
     a_in, k = dims[L - 1], dims[L]
     for c in range(k):
         acc = 0.0
@@ -300,7 +175,7 @@ def _vjp(r, t, G, gv, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA):  #
                 for c in range(a_out):
                     acc += W[l, m, q, c] * GA[l + 1, r, t, c]
                 GA[l, r, t, q] = acc
-        _times_derivative(code, Z, Y, GA, l, r, t, a_in)
+        times_derivative(code, Z, Y, GA, l, r, t, a_in)
     for e in range(n):
         gv[e] = 0.0
     for j in range(n):

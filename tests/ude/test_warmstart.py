@@ -142,3 +142,12 @@ def test_formulas_are_judged_by_the_recordings(room_project: Path, monkeypatch: 
     assert r2 > 0.8
     coef = float(abs(chosen.expr.subs({a: 1.0, o: 0.0}) - chosen.expr.subs({a: 0.0, o: 0.0})) * alpha)
     assert coef == pytest.approx(15.0, rel=0.2)  # W/K of the concealed ventilation
+
+
+def test_models_of_one_warm_start_point_to_the_first() -> None:
+    """Checks, chained starts and first evaluations are done once per warm start: each position
+    points to the first with its key; a model without a key is its own."""
+    from physmend.ude.warmstart import same_warm_start
+
+    assert same_warm_start(["a", None, "b", "a", None, "b", "a"]) == [0, 1, 2, 0, 4, 2, 0]
+    assert same_warm_start([]) == []

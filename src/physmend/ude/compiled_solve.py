@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from physmend.ude import rk4_loops  # numba, imported with the trainer (not in the middle of a trial)
+from physmend.ude.activation_loops import CODES
 
 
 class CompiledSolve(torch.autograd.Function):
@@ -79,13 +80,13 @@ class CompiledSolve(torch.autograd.Function):
 
 
 def codes(activation: str | Sequence[str], models: int) -> np.ndarray:
-    """Each model's activation number ``(models,)`` (:data:`physmend.ude.rk4_loops.CODES`), as the
+    """Each model's activation number ``(models,)`` (:data:`physmend.ude.activation_loops.CODES`), as the
     loops take them: ``activation`` one name for every model, or one per model."""
     names = [activation] * models if isinstance(activation, str) else list(activation)
     if len(names) != models:
         raise ValueError(f"compiled_solve.codes: one activation per model is needed ({models} models), "
                          f"but got {len(names)}: {names}")
-    return np.array([rk4_loops.CODES[a] for a in names], dtype=np.int64)
+    return np.array([CODES[a] for a in names], dtype=np.int64)
 
 
 def pack(wu: torch.Tensor, gain: torch.Tensor, layers: Sequence[torch.Tensor], reads: torch.Tensor | None,

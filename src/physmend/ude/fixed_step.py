@@ -33,7 +33,8 @@ from physmend.simulate import PiecewiseLinear
 from physmend.ude.compiled_solve import _loop, codes, pack
 from physmend.ude.drive import network_parts, columns, drivable, physics_drive
 from physmend.ude.hybrid import HybridModel
-from physmend.ude import rk4_loops, rk4_steps
+from physmend.ude import rk4_steps
+from physmend.ude.activation_loops import CODES
 
 #: solver methods with error control (rtol, atol) whose solves this may stand in for
 ADAPTIVE = ("rodas3", "rodas4", "rodas4p2", "dopri5", "dopri8", "bosh3", "fehlberg2", "adaptive_heun", "tsit5")
@@ -89,7 +90,7 @@ def applies(sim: dict, activation: str | Sequence[str], device: torch.device) ->
     or each model's)."""
     names = [activation] if isinstance(activation, str) else activation
     return (sim["method"] in ADAPTIVE and set(sim["options"]) <= {"clocks"} and device.type == "cpu"
-            and all(a in rk4_loops.CODES for a in names))
+            and all(a in CODES for a in names))
 
 
 def rk4_states(form: DriveForm, u0: torch.Tensor, t: torch.Tensor, stops: Sequence[torch.Tensor] | None,

@@ -28,8 +28,9 @@ output layer's at ``L``), and the sums over stages that belong to one half step 
 ``g_d (H, R, n)``, ``g_pre (H, M, S, w₀)``, ``g_gain (R, k)``. The weight and matrix gradients are
 products over all stages of these, taken in :mod:`physmend.ude.compiled_solve`.
 
-Activations are numbered as :data:`CODES` (:mod:`physmend.ude.activation_loops`, written without
-the C library so that a layer's loop is vector instructions), one per model (``codes (M,)``, row ``r`` model ``r // S``'s:
+Activations are numbered as :data:`physmend.ude.activation_loops.CODES` (written without
+the C library so that a layer's loop is vector instructions), one per model (``codes (M,)``, row
+``r`` model ``r // S``'s:
 :func:`physmend.ude.compiled_solve.codes`), so models with different activations are one solve.
 NaN and infinity pass through as in torch (the fast math flags allow reassociation only).
 """
@@ -39,9 +40,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from physmend.ude.activation_loops import CODES, FAST, activate, times_derivative
+from physmend.ude.activation_loops import FAST, activate, times_derivative
 
-__all__ = ["CODES", "backward", "backward_threads", "forward", "forward_threads"]
 _FAST = FAST
 
 

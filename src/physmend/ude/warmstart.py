@@ -291,6 +291,14 @@ def warm_key(hybrid: HybridModel, forced: Forced, params: torch.Tensor, iteratio
     return h.hexdigest()
 
 
+def same_warm_start(keys: Sequence[str | None]) -> list[int]:
+    """For each position of ``keys`` (:func:`warm_key`, None: none), the first position with the same
+    key, its own where the key is None: models of one warm start (trials that differ in their training
+    settings only) whose checks, chained starts or first evaluation are one model's."""
+    firsts: dict[str, int] = {}
+    return [i if key is None else firsts.setdefault(key, i) for i, key in enumerate(keys)]
+
+
 def recall(key: str, hybrid: HybridModel) -> bool:
     """Load the warm start stored under ``key`` into ``hybrid``; False when there is none."""
     hit = _WARM.get(key)

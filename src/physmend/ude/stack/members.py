@@ -18,7 +18,8 @@ from physmend.ude.reference import Reference
 from physmend.ude.schedule import lr_schedule
 from physmend.ude.shooting import BOX_MARGIN, Shooting, chained_starts, initial_segments, pinned_starts, segments_finite
 from physmend.ude.spec import build_spec
-from physmend.ude.warmstart import Forced, forced_trajectories, recall, remember, segment_starts, warm_key, warm_start
+from physmend.ude.warmstart import (Forced, forced_trajectories, recall, remember, same_warm_start, segment_starts, warm_key,
+                                    warm_start)
 
 
 def prepare(cfg: TrainingSettings, problem: Problem, ref: Reference, plan: Shooting, slot: int, *, warm: bool = True) -> Member:
@@ -107,16 +108,15 @@ def drop_unstable_warm_starts(members: list[Member], initial: list[dict[str, Any
     fixed_first = ref.batch.u0[plan.exp_index]
     params_seg = ref.batch.params[plan.exp_index]
     box = members[0].hybrid.spec.box(BOX_MARGIN, ref.batch.t.dtype)  # as the stack trains (states held in it)
-    finite: dict[str, bool] = {}  # by warm start
-    for mem, state in zip(members, initial):
-        key = mem.warm_key
-        ok = None if key is None else finite.get(key)
-        if ok is None:
+    firsts = same_warm_start([mem.warm_key for mem in members])
+    finite: list[bool] = []
+    for i, (mem, state) in enumerate(zip(members, initial)):
+        if firsts[i] == i:
             rhs = mem.hybrid.rhs(mem.hybrid.parameters_for(params_seg))
-            ok = segments_finite(rhs, torch.where(pinned, fixed_first, mem.seg0), plan, box)
-            if key is not None:
-                finite[key] = ok
-        if not ok:
+            finite.append(segments_finite(rhs, torch.where(pinned, fixed_first, mem.seg0), plan, box))
+        else:
+            finite.append(finite[firsts[i]])
+        if not finite[i]:
             mem.hybrid.load_state_dict(state)
             mem.forced, mem.warm_key = None, None
             mem.lrs = lr_schedule(mem.cfg.train, warm=False)

@@ -24,7 +24,7 @@ from physmend.ude.stack.plan import plan_key, time_grid_parts
 from physmend.ude.metrics import checkpoint_problem
 from physmend.ude.reference import Reference, train_mask
 from physmend.ude.shooting import Shooting, equation_scale, output_spread, chained_starts, pinned_starts, rk4_segments, BOX_MARGIN
-from physmend.ude.warmstart import Forced, fit_models, recall_derived, remember_derived
+from physmend.ude.warmstart import Forced, fit_models, recall_derived, remember_derived, same_warm_start
 
 
 @dataclass
@@ -287,19 +287,17 @@ class Stack(StackDrives, StackEvaluation):
         if not want:
             return
         name = ("chained", plan_key(self.plan))
-        todo, same = [], {}  # same: a model whose warm start another in todo has -> that model
-        firsts: dict[str, int] = {}
+        pending = []
         for i in want:
             key = self.members[i].warm_key
             stored = None if key is None else recall_derived(key, name)
             if stored is not None:
                 self.seg0[i] = stored
-            elif key is not None and key in firsts:
-                same[i] = firsts[key]
             else:
-                todo.append(i)
-                if key is not None:
-                    firsts[key] = i
+                pending.append(i)
+        firsts = same_warm_start([self.members[i].warm_key for i in pending])
+        todo = [i for j, i in enumerate(pending) if firsts[j] == j]
+        same = {i: pending[firsts[j]] for j, i in enumerate(pending) if firsts[j] != j}  # -> the model chained for it
         if not todo:
             return
         m = len(todo)

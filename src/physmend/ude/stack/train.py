@@ -29,7 +29,7 @@ from physmend.ude.stack.members import (check_same_shape, drop_unstable_warm_sta
                                         warm_fit_members, warm_settings)
 from physmend.ude.stack.plan import setup
 from physmend.ude.stack.solve import Member, Stack
-from physmend.ude.warmstart import Forced, recall_derived, remember_derived
+from physmend.ude.warmstart import Forced, recall_derived, remember_derived, same_warm_start
 
 #: ``report(i, epoch, row)`` after every evaluation of model ``i``
 Report = Callable[[int, int, dict[str, float]], None]
@@ -133,11 +133,8 @@ def _run(members: list[Member], problem: Problem, ref: Reference, plan: Shooting
         todo = [pos for pos in positions if pos not in known]
         outcomes: dict[int, tuple[dict[str, float], Any] | BaseException] = {pos: (known[pos], None) for pos in positions if pos in known}
         if todo:
-            first: dict[int, int] = {}  # position -> the position evaluated for it
-            by_key: dict[str, int] = {}
-            for pos in todo:
-                key = stack.members[pos].warm_key if as_warm_started else None
-                first[pos] = pos if key is None else by_key.setdefault(key, pos)
+            firsts = same_warm_start([stack.members[pos].warm_key if as_warm_started else None for pos in todo])
+            first = {pos: todo[j] for pos, j in zip(todo, firsts)}  # position -> the position evaluated for it
             solved = sorted(set(first.values()))
             evaluated = dict(zip(solved, stack.evaluate(solved, sim)))
             outcomes.update({pos: evaluated[first[pos]] for pos in todo})

@@ -18,7 +18,7 @@ from physmend.cli import main
 from physmend.config import compose
 from physmend.cpus import usable_cpus
 from physmend.stages.discover import _workers, sweep_settings
-from physmend.sweep.storage import WORKER_ATTR
+from physmend.sweep.storage import REASON_ATTR, WORKER_ATTR
 
 TINY = ["model=oscillator", "data=oscillator", "train.step=0.05", "train.segment_length=3.0", "train.epochs=20",
         "train.eval_every=10", "simulate.rtol=1e-6", "simulate.atol=1e-7", "ude.depth=1", "sweep.figures=false",
@@ -191,7 +191,8 @@ def test_after_the_budget_s_decision_every_worker_runs_its_share(
     _sweep_beside_standby(overrides, conf, 1)
     assert "ended with exit status" not in capsys.readouterr().err
     trials = optuna.load_study(study_name="rounds", storage=f"sqlite:///{user_project / 'optuna.db'}").trials
-    assert [t.state.name for t in trials] == ["COMPLETE"] * 4  # the budget allowed the most, 4
+    states = [(t.state.name, t.user_attrs.get(REASON_ATTR)) for t in trials]
+    assert states == [("COMPLETE", None)] * 4, states  # the budget allowed the most, 4
     later = trials[2:]
     assert len({t.user_attrs[WORKER_ATTR]["id"] for t in later}) == 2  # one in each process
     a, b = later

@@ -191,9 +191,12 @@ def test_after_the_budget_s_decision_every_worker_runs_its_share(
     _sweep_beside_standby(overrides, conf, 1)
     assert "ended with exit status" not in capsys.readouterr().err
     trials = optuna.load_study(study_name="rounds", storage=f"sqlite:///{user_project / 'optuna.db'}").trials
-    states = [(t.state.name, t.user_attrs.get(REASON_ATTR)) for t in trials]
-    assert states == [("COMPLETE", None)] * 4, states  # the budget allowed the most, 4
-    later = trials[2:]
+    # a worker that asked at the same moment as the other for the minimum's last trial got a surplus
+    # trial (a legitimate race, not a verdict) and went on waiting for the decision, not home
+    counted = [t for t in trials if t.user_attrs.get(REASON_ATTR) != "surplus"]
+    states = [(t.number, t.state.name, t.user_attrs.get(REASON_ATTR)) for t in trials]
+    assert [t.state.name for t in counted] == ["COMPLETE"] * 4, states  # the budget allowed the most, 4
+    later = counted[2:]
     assert len({t.user_attrs[WORKER_ATTR]["id"] for t in later}) == 2  # one in each process
     a, b = later
     assert a.datetime_start < b.datetime_complete and b.datetime_start < a.datetime_complete  # side by side

@@ -116,15 +116,18 @@ class Sweep(StackedTrials):
                 break
             if self.settings.group > 1:
                 batch = self.trial_group(bar, self.group_size(counts))
-                if batch is None:
-                    break
+                if batch is None:  # surplus (see below)
+                    continue
                 for outcome in batch:
                     outcomes.append(outcome)
                     self._after(outcome, bar)
                 continue
             outcome = self.one_trial(bar)
             if outcome is None:
-                break
+                # surplus: another worker asked for the last trial at the same moment. The top of the
+                # loop decides: the end, or (the budget's decision pending, a trial ahead interrupted)
+                # wait or ask again; leaving here would leave the budget's extra trials to the others
+                continue
             outcomes.append(outcome)
             self._after(outcome, bar)
         return outcomes

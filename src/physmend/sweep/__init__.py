@@ -27,7 +27,8 @@ Resume and workers
     attribute). Any number of processes may run the same command on one storage: before each
     trial a worker counts the trials that reached a verdict (COMPLETE, PRUNED, FAIL) plus those
     running, and stops when ``n_trials`` is reached; a trial asked in a race beyond ``n_trials`` is
-    closed at once as FAIL with ``fail_reason=surplus``.
+    closed at once as FAIL with ``fail_reason=surplus``, and its worker counts again (it waits while
+    ``sweep.budget``'s decision, which may ask for more trials, is still to come).
 
 Interrupted trials
     A trial whose worker stopped (killed, machine lost) stays RUNNING in the storage. Each

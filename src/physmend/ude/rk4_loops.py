@@ -59,7 +59,7 @@ def _rhs(r, t, i, Vs, du, At, d, pre, wu, W, b, dims, gain, reads, index, code, 
         vq = Vs[r, t, reads[q]]
         for c in range(w0):
             Z[0, r, t, c] += vq * wu[m, q, c]
-    activate(code, Z, Y, 0, r, t, w0)
+    activate(code, Z, Y, L - L, r, t, w0)  # layer 0 as a run-time integer: a literal 0 would compile each loop twice
     for l in range(L - 1):
         a_in, a_out = dims[l], dims[l + 1]
         for c in range(a_out):

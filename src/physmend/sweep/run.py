@@ -5,6 +5,7 @@ waits for, the summary, and the error when no trial finished).
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import subprocess
@@ -99,6 +100,7 @@ def run_sweep(
             study, created = _study(storage, study_name, settings, space, study_fingerprint(cfg, space))
             tags = _parent_tags(cfg, space, study_name, storage.url, source_run_id)
             parent = _parent_run(study, created, store, lambda: _create_parent(store, cfg, space, settings, tags))
+            _settle_run_context()
             configs = TrialConfigs(cfg, problem, overrides, config_dir)
             if str(problem.device).startswith("cpu"):
                 from physmend.ude.adjoint import warm
@@ -165,3 +167,14 @@ def _trainer() -> Callable[..., Any]:
     from physmend.ude import train
 
     return train
+
+
+def _settle_run_context() -> None:
+    """Read MLflow's run context (the git repository around the program, once per process) and
+    collect its garbage now, before any trial: the GitPython objects it makes sit in reference cycles
+    until a later collection, and a Ctrl-C that lands in their finaliser during a trial is printed
+    and dropped by Python (the sweep then went on as if no key was pressed)."""
+    from mlflow.tracking.context.registry import resolve_tags
+
+    resolve_tags()
+    gc.collect()

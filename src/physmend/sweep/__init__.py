@@ -38,7 +38,8 @@ Interrupted trials
     host at once, others after ``sweep.stale_after`` s without a heartbeat. Interrupted trials
     (and Ctrl-C'd ones) reached no verdict, so they do not count towards ``n_trials``: resuming
     runs a fresh trial in their place. They are not re-enqueued — a configuration that crashed
-    its worker is not retried blindly.
+    its worker is not retried blindly. A Ctrl-C that lands in a finaliser, where Python prints
+    and drops it, is raised again at the trial's next epoch (:mod:`physmend.sweep.ctrl_c`).
 
 Divergence and budget
     A trial whose training diverges is restarted (``sweep.restarts``, each time with the learning
@@ -59,6 +60,7 @@ Modules (nothing here imports :mod:`physmend.stages`)
     ``standby``   worker processes started early (importing) that wait for their command line
     ``report``    per-epoch reporter, logged results, progress lines
     ``outcome``   how one trial ended
+    ``ctrl_c``    a Ctrl-C that Python dropped in a finaliser, raised again
     ``child``     a trial's child run: opened, tagged on a restart, marked FAIL or KILLED
     ``group``     trials asked as a group and trained as one stack
     ``loop``      the study loop (one trial or a group at a time)

@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from physmend.config import ConfigError
 from physmend.sweep.child import child_run, kill_child, mark_child, record_restart
 from physmend.sweep.configs import TrialConfigs
+from physmend.sweep.ctrl_c import check as check_ctrl_c
 from physmend.sweep.group import StackedTrials
 from physmend.sweep.outcome import Outcome
 from physmend.sweep.report import EpochProgress, Reporter, _log_result, _say, _show
@@ -98,6 +99,7 @@ class Sweep(StackedTrials):
         self.progress = EpochProgress(bar, int(OmegaConf.select(self.cfg, "train.epochs", default=0) or 0))
         outcomes: list[Outcome] = []
         while True:
+            check_ctrl_c()  # one that Python dropped in a finaliser (physmend.sweep.ctrl_c)
             self.fail_stale_trials(bar)
             counts = tally(self.study.get_trials(deepcopy=False))
             self.apply_budget(bar)

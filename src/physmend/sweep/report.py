@@ -11,6 +11,7 @@ from pathlib import Path
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from physmend.sweep.ctrl_c import check as check_ctrl_c
 from physmend.sweep.storage import Tally
 
 if TYPE_CHECKING:
@@ -47,6 +48,7 @@ class Reporter:
     def __call__(self, epoch: int, metrics: dict[str, float]) -> None:
         import optuna
 
+        check_ctrl_c()  # one that Python dropped in a finaliser during this epoch (physmend.sweep.ctrl_c)
         epoch = int(epoch)
         if self.on_epoch is not None:
             self.on_epoch(self.trial.number, epoch)

@@ -20,6 +20,7 @@ from physmend.config import ConfigError
 from physmend.exceptions import PhysmendError
 from physmend.redact import redact
 from physmend.sweep.configs import TrialConfigs, _override_key, check_keys, check_overrides, probe_space
+from physmend.sweep.ctrl_c import kept as kept_ctrl_c
 from physmend.sweep.loop import Sweep
 from physmend.sweep.parent import _create_parent, _finish_parent, _parent_run, _parent_tags
 from physmend.sweep.report import _say
@@ -125,7 +126,8 @@ def _drive(sweep: Sweep, helpers: Sequence[Any] = ()) -> str:
                file=sys.stderr, disable=not sweep.settings.progress, dynamic_ncols=True)
     status = "FINISHED"
     try:
-        sweep.loop(bar)
+        with kept_ctrl_c():  # a Ctrl-C that Python drops in a finaliser is raised again (physmend.sweep.ctrl_c)
+            sweep.loop(bar)
         if helpers:
             sweep.idle()
         _join_workers(list(helpers))

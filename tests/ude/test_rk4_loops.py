@@ -188,3 +188,33 @@ def test_the_shared_twin_is_compiled_ahead_only_where_threads_share_rows() -> No
             "warm_shared(threads=2); print(a, len(rk4_steps.steps_threads.signatures), torch.get_num_threads())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
     assert out.stdout.split() == ["0", "1", "1"]
+
+
+@pytest.mark.parametrize("K", [9600, 30, 7])
+def test_tall_products_in_chunks_are_one_product(K: int) -> None:
+    """With fewer models than threads the weight gradients' sums over stages are taken in chunks:
+    the same numbers as one product, to rounding; one thread: one product, the same bits."""
+    g = torch.Generator().manual_seed(5)
+    a, b = (torch.randn(1, K, w, dtype=torch.float64, generator=g) for w in (6, 4))
+    want = torch.bmm(a.transpose(1, 2), b)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        assert torch.equal(compiled_solve.tall_product(a, b), want)
+        torch.set_num_threads(2)
+        got = compiled_solve.tall_product(a, b)
+    finally:
+        torch.set_num_threads(before)
+    assert got.shape == want.shape == (1, 6, 4)
+    torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12 * K**0.5)
+
+
+def test_one_model_on_two_threads_is_the_serial_solve() -> None:
+    """One model, two threads (the weight gradients in chunks): the one-thread numbers to rounding."""
+    tensors, kw = _problem(M=1, S=4, K=6)
+    one_traj, one = _solve("tanh", tensors, kw, compiled=True, threads=1)
+    two_traj, two = _solve("tanh", tensors, kw, compiled=True, threads=2)
+    assert torch.equal(one_traj, two_traj)
+    for a, b in zip(one, two):
+        assert float(b.abs().max()) > 0
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-13)

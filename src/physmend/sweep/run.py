@@ -175,7 +175,8 @@ def _settle_run_context() -> None:
     """Read MLflow's run context (the git repository around the program, once per process) and
     collect its garbage now, before any trial: the GitPython objects it makes sit in reference cycles
     until a later collection, and a Ctrl-C that lands in their finaliser during a trial is printed
-    and dropped by Python (the sweep then went on as if no key was pressed)."""
+    and dropped by Python. :mod:`physmend.sweep.ctrl_c` raises any dropped Ctrl-C again at the next
+    epoch; this keeps the commonest one from being dropped at all, so that it acts at once."""
     from mlflow.tracking.context.registry import resolve_tags
 
     resolve_tags()

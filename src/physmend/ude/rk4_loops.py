@@ -18,7 +18,9 @@ Layout (one dtype throughout, C-contiguous, rows model-major ``r = m·S + s``):
   ones it corrects; ``lo, hi (R, n)`` the box when ``boxed``.
 
 Forward writes the grid points ``traj (K+1, R, n)`` and, per stage ``t = 4k + s``, the state it
-evaluated ``Vs (R, T, n)``, each activated layer's pre-activation and value ``Z, Y (L, R, T, P)``,
+evaluated ``Vs (R, T, n)``, for each activated layer the activation's derivative and value ``Z, Y
+(L, R, T, P)`` (``Z`` holds the pre-activation until the activation overwrites it with the
+derivative: the backward pass needs nothing else, and the forward pass has what it is made of),
 the network's output ``OUT (R, T, k)`` and, per clamp, 1 where the state was inside the box
 ``MASK (R, T, n)`` (clamp ``4k+s`` holds stage ``s+2``'s state, the last one step ``k``'s end).
 
@@ -40,41 +42,50 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from physmend.ude.activation_loops import FAST, activate, times_derivative
+from physmend.ude.activation_loops import FAST, activate
 
 _FAST = FAST
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def _rhs(r, t, i, Vs, du, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT):  # noqa: ANN001, ANN202, PLR0913  # pragma: no cover
-    """``du = f(Vs[r, t])`` for row ``r`` at stage ``t`` (half step ``i``), keeping the stage's layers."""
+def _rhs(r, t, i, Vs, du, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, keep):  # noqa: ANN001, ANN202, PLR0913  # pragma: no cover
+    """``du = f(Vs[r, t])`` for row ``r`` at stage ``t`` (half step ``i``), keeping the stage's layers;
+    ``keep``: ``Z`` left holding the activations' derivatives (a training solve's forward pass).
+    ``acc (P,)``: the row's scratch, where each layer's sums are taken before they are stored in
+    ``Z`` (summed in place in ``Z``, each term is a load and a store of ``Z`` that the compiler
+    cannot keep in registers, ``Z`` and ``W`` being arrays it cannot tell apart; the same sums in
+    the same order)."""
     m = r // S
     s = r - m * S
     n = du.shape[0]
     L = W.shape[0]
     w0 = dims[0]
     for c in range(w0):
-        Z[0, r, t, c] = pre[i, m, s, c]
+        acc[c] = pre[i, m, s, c]
     for q in range(reads.shape[0]):
         vq = Vs[r, t, reads[q]]
         for c in range(w0):
-            Z[0, r, t, c] += vq * wu[m, q, c]
-    activate(code, Z, Y, L - L, r, t, w0)  # layer 0 as a run-time integer: a literal 0 would compile each loop twice
+            acc[c] += vq * wu[m, q, c]
+    for c in range(w0):
+        Z[0, r, t, c] = acc[c]
+    activate(code, Z, Y, L - L, r, t, w0, keep)  # layer 0 as a run-time integer: a literal 0 would compile each loop twice
     for l in range(L - 1):
         a_in, a_out = dims[l], dims[l + 1]
         for c in range(a_out):
-            Z[l + 1, r, t, c] = b[l, m, c]
+            acc[c] = b[l, m, c]
         for q in range(a_in):
             yq = Y[l, r, t, q]
             for c in range(a_out):
-                Z[l + 1, r, t, c] += yq * W[l, m, q, c]
-        activate(code, Z, Y, l + 1, r, t, a_out)
+                acc[c] += yq * W[l, m, q, c]
+        for c in range(a_out):
+            Z[l + 1, r, t, c] = acc[c]
+        activate(code, Z, Y, l + 1, r, t, a_out, keep)
     a_in, k = dims[L - 1], dims[L]
     for c in range(k):
-        acc = 0.0
+        dot = 0.0
         for q in range(a_in):
-            acc += W[L - 1, m, c, q] * Y[L - 1, r, t, q]
-        OUT[r, t, c] = b[L - 1, m, c] + acc
+            dot += W[L - 1, m, c, q] * Y[L - 1, r, t, q]
+        OUT[r, t, c] = b[L - 1, m, c] + dot
     for e in range(n):
         du[e] = d[i, r, e]
     for j in range(n):
@@ -105,6 +116,7 @@ def _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes
     code = codes[r // S]
     n = u0.shape[1]
     steps = traj.shape[0] - 1
+    acc = np.empty(Z.shape[3], Z.dtype)
     k1 = np.empty(n, u0.dtype)
     k2 = np.empty(n, u0.dtype)
     k3 = np.empty(n, u0.dtype)
@@ -115,13 +127,13 @@ def _forward_row(r, h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes
         t = 4 * kk
         for e in range(n):
             Vs[r, t, e] = traj[kk, r, e]
-        _rhs(r, t, 2 * kk, Vs, k1, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, t, 2 * kk, Vs, k1, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, True)
         _stage(r, t, t, 0.5 * h, k1, boxed, lo, hi, Vs, MASK)
-        _rhs(r, t + 1, 2 * kk + 1, Vs, k2, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, t + 1, 2 * kk + 1, Vs, k2, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, True)
         _stage(r, t, t + 1, 0.5 * h, k2, boxed, lo, hi, Vs, MASK)
-        _rhs(r, t + 2, 2 * kk + 1, Vs, k3, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, t + 2, 2 * kk + 1, Vs, k3, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, True)
         _stage(r, t, t + 2, h, k3, boxed, lo, hi, Vs, MASK)
-        _rhs(r, t + 3, 2 * kk + 2, Vs, k4, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, t + 3, 2 * kk + 2, Vs, k4, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, True)
         h6 = h / 6.0
         for e in range(n):
             val = Vs[r, t, e] + h6 * ((k1[e] + 2.0 * (k2[e] + k3[e])) + k4[e])
@@ -152,8 +164,10 @@ def forward_threads(h, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
-def _vjp(r, t, G, gv, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA):  # noqa: ANN001, ANN202, PLR0913  # pragma: no cover
-    """``gv = J_f(Vs[r, t])ᵀ G[r, t]`` for row ``r`` at stage ``t``, keeping each layer's ``∂pre-activation``."""
+def _vjp(r, t, G, gv, A, wu, W, dims, gain, reads, index, S, Z, GA, acc):  # noqa: ANN001, ANN202, PLR0913  # pragma: no cover
+    """``gv = J_f(Vs[r, t])ᵀ G[r, t]`` for row ``r`` at stage ``t``, keeping each layer's ``∂pre-activation``
+    (``Z``: the activations' derivatives, as the forward pass left them; ``acc (P,)``: the row's
+    scratch for the output layer's sums, as in :func:`_rhs`)."""
     m = r // S
     n = gv.shape[0]
     L = W.shape[0]
@@ -164,18 +178,19 @@ def _vjp(r, t, G, gv, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA):  #
         a_in, a_out = dims[l], dims[l + 1]
         if l == L - 1:  # the output layer, stored transposed
             for q in range(a_in):
-                GA[l, r, t, q] = 0.0
+                acc[q] = 0.0
             for c in range(a_out):
                 uc = GA[l + 1, r, t, c]
                 for q in range(a_in):
-                    GA[l, r, t, q] += uc * W[l, m, c, q]
+                    acc[q] += uc * W[l, m, c, q]
+            for q in range(a_in):
+                GA[l, r, t, q] = acc[q] * Z[l, r, t, q]
         else:
             for q in range(a_in):
-                acc = 0.0
+                dot = 0.0
                 for c in range(a_out):
-                    acc += W[l, m, q, c] * GA[l + 1, r, t, c]
-                GA[l, r, t, q] = acc
-        times_derivative(code, Z, Y, GA, l, r, t, a_in)
+                    dot += W[l, m, q, c] * GA[l + 1, r, t, c]
+                GA[l, r, t, q] = dot * Z[l, r, t, q]
     for e in range(n):
         gv[e] = 0.0
     for j in range(n):
@@ -184,10 +199,10 @@ def _vjp(r, t, G, gv, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA):  #
             gv[e] += gj * A[r, j, e]
     w0 = dims[0]
     for q in range(reads.shape[0]):
-        acc = 0.0
+        dot = 0.0
         for c in range(w0):
-            acc += wu[m, q, c] * GA[0, r, t, c]
-        gv[reads[q]] += acc
+            dot += wu[m, q, c] * GA[0, r, t, c]
+        gv[reads[q]] += dot
 
 
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy", inline="always")
@@ -206,7 +221,6 @@ def _sums(r, t, i, S, G, GA, OUT, index, g_d, g_pre, g_gain) -> None:  # noqa: A
 @numba.njit(cache=True, fastmath=_FAST, error_model="numpy")
 def _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxed, Z, Y, OUT, MASK,  # noqa: ANN001, ANN202, PLR0913
                   g_u0, G, GA, g_d, g_pre, g_gain):  # pragma: no cover - compiled
-    code = codes[r // S]
     n = g_u0.shape[1]
     steps = grad.shape[0] - 1
     lam = np.empty(n, grad.dtype)
@@ -215,6 +229,7 @@ def _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxe
     l3 = np.empty(n, grad.dtype)
     l2 = np.empty(n, grad.dtype)
     l1 = np.empty(n, grad.dtype)
+    acc = np.empty(GA.shape[3], GA.dtype)
     for e in range(n):
         lam[e] = 0.0
     for kk in range(steps - 1, -1, -1):
@@ -226,25 +241,25 @@ def _backward_row(r, h, grad, A, wu, W, dims, gain, reads, index, codes, S, boxe
             lam[e] = x
             g23[e] = x * (h / 3.0)
             G[r, t + 3, e] = x * (h / 6.0)
-        _vjp(r, t + 3, G, l4, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA)
+        _vjp(r, t + 3, G, l4, A, wu, W, dims, gain, reads, index, S, Z, GA, acc)
         _sums(r, t + 3, 2 * kk + 2, S, G, GA, OUT, index, g_d, g_pre, g_gain)
         for e in range(n):
             if boxed:
                 l4[e] = l4[e] * MASK[r, t + 2, e]
             G[r, t + 2, e] = g23[e] + h * l4[e]
-        _vjp(r, t + 2, G, l3, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA)
+        _vjp(r, t + 2, G, l3, A, wu, W, dims, gain, reads, index, S, Z, GA, acc)
         _sums(r, t + 2, 2 * kk + 1, S, G, GA, OUT, index, g_d, g_pre, g_gain)
         for e in range(n):
             if boxed:
                 l3[e] = l3[e] * MASK[r, t + 1, e]
             G[r, t + 1, e] = g23[e] + (0.5 * h) * l3[e]
-        _vjp(r, t + 1, G, l2, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA)
+        _vjp(r, t + 1, G, l2, A, wu, W, dims, gain, reads, index, S, Z, GA, acc)
         _sums(r, t + 1, 2 * kk + 1, S, G, GA, OUT, index, g_d, g_pre, g_gain)
         for e in range(n):
             if boxed:
                 l2[e] = l2[e] * MASK[r, t, e]
             G[r, t, e] = G[r, t + 3, e] + (0.5 * h) * l2[e]
-        _vjp(r, t, G, l1, A, wu, W, dims, gain, reads, index, code, S, Z, Y, GA)
+        _vjp(r, t, G, l1, A, wu, W, dims, gain, reads, index, S, Z, GA, acc)
         _sums(r, t, 2 * kk, S, G, GA, OUT, index, g_d, g_pre, g_gain)
         for e in range(n):
             lam[e] = (((lam[e] + l4[e]) + l3[e]) + l2[e]) + l1[e]

@@ -26,6 +26,7 @@ def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S,  #
     code = codes[r // S]
     n = u0.shape[1]
     steps = hs.shape[1]
+    acc = np.empty(Z.shape[3], Z.dtype)
     k1 = np.empty(n, u0.dtype)
     k2 = np.empty(n, u0.dtype)
     k3 = np.empty(n, u0.dtype)
@@ -38,7 +39,7 @@ def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S,  #
         s1, s2, s3 = s0 + 1, s0 + 2, s0 + 3
         for e in range(n):
             Vs[r, 0, e] = traj[kk, r, e]
-        _rhs(r, s0, 2 * kk, Vs, k1, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s0, 2 * kk, Vs, k1, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, False)
         for e in range(n):
             slope[kk, r, e] = k1[e]
         if kk == steps:
@@ -46,13 +47,13 @@ def _row(r, hs, u0, At, d, pre, wu, W, b, dims, gain, reads, index, codes, S,  #
         h = hs[r, kk]
         for e in range(n):
             Vs[r, 1, e] = Vs[r, 0, e] + 0.5 * h * k1[e]
-        _rhs(r, s1, 2 * kk + 1, Vs, k2, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s1, 2 * kk + 1, Vs, k2, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, False)
         for e in range(n):
             Vs[r, 2, e] = Vs[r, 0, e] + 0.5 * h * k2[e]
-        _rhs(r, s2, 2 * kk + 1, Vs, k3, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s2, 2 * kk + 1, Vs, k3, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, False)
         for e in range(n):
             Vs[r, 3, e] = Vs[r, 0, e] + h * k3[e]
-        _rhs(r, s3, 2 * kk + 2, Vs, k4, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT)
+        _rhs(r, s3, 2 * kk + 2, Vs, k4, At, d, pre, wu, W, b, dims, gain, reads, index, code, S, Z, Y, OUT, acc, False)
         h6 = h / 6.0
         for e in range(n):
             traj[kk + 1, r, e] = Vs[r, 0, e] + h6 * ((k1[e] + 2.0 * (k2[e] + k3[e])) + k4[e])

@@ -334,3 +334,38 @@ def test_patience_waits_while_the_training_fit_improves_alone_and_stacked(short_
         _cfg(short_project, "train.patience_fit_gain=0.9")  # refused when the configuration is composed
     with pytest.raises(ConfigError, match=r"mask.retrain_epochs must be a whole number ≥ 1, but got 0"):
         _cfg(short_project, "mask.retrain_epochs=0")
+
+
+def test_a_stack_over_the_memory_limit_trains_in_parts_that_fit(short_project: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """More models than ``train.memory_limit_gib`` allows at once: consecutive stacks that fit, each
+    model reported under its own position; a model over the limit alone is refused, the others train."""
+    from physmend.ude.stack.plan import setup
+    from physmend.ude.timescale import GIB, TimeSettingError, budget_parts, steps_bytes
+
+    monkeypatch.chdir(short_project)
+    problem = load_problem(_cfg(short_project, *TRIALS[0]))
+    settings = [resolve_settings(training_settings(_cfg(short_project, *t)), problem) for t in TRIALS]
+    _, plan = setup(problem, settings[0])
+
+    def need(*models: int) -> float:  # GiB, as the budget check estimates it
+        return steps_bytes(int(plan.steps), int(plan.starts.shape[0]), problem, [settings[i] for i in models]) / GIB
+
+    assert need(0, 1) < need(0, 1, 2) and need(1) < need(2) < need(0, 1)  # the widths and depths of TRIALS
+    cases = {
+        (need(0, 1) + need(0, 1, 2)) / 2: ([[0, 1], [2]], {0, 1, 2}),  # two fit together, the third alone
+        (need(1) + need(2)) / 2: ([[0], [1], [2]], {0, 1}),  # each alone; the third over the limit even alone
+    }
+    for limit, (parts, trained) in cases.items():
+        cfgs = [_cfg(short_project, *t, f"train.memory_limit_gib={limit!r}") for t in TRIALS]
+        assert budget_parts(plan, problem, [resolve_settings(training_settings(c), problem) for c in cfgs]) == parts
+        seen: set[tuple[int, int]] = set()
+        results = train_stack(cfgs, problem, report=lambda i, epoch, row: seen.add((i, epoch)))
+        assert seen == {(i, e) for i in sorted(trained) for e in (0, 2, 4)}
+        for i, result in enumerate(results):
+            if i in trained:
+                assert isinstance(result, TrainResult), result
+                assert result.hybrid.spec.widths == [int(cfgs[i].ude.width)] * int(cfgs[i].ude.depth)
+            else:
+                assert isinstance(result, TimeSettingError)
+                assert f"more than train.memory_limit_gib={limit:g}" in str(result) and "x 1 model(s)" in str(result)

@@ -223,6 +223,23 @@ def memory_limit(cfg: Any) -> float:
     return float(training_settings(cfg).train.memory_limit_gib)
 
 
+def budget_parts(plan: Any, problem: Problem, cfgs: list[Any]) -> list[list[int]]:
+    """The positions of ``cfgs`` in consecutive parts, each a stack whose plan fits
+    ``train.memory_limit_gib`` (:func:`steps_bytes`): one part where the whole stack fits; a model
+    that does not fit alone is a part of its own (:func:`check_budget` refuses it)."""
+    limit = memory_limit(cfgs[0]) * GIB
+    steps, segments = int(plan.steps), int(plan.starts.shape[0])
+    parts: list[list[int]] = []
+    part: list[int] = []
+    for i in range(len(cfgs)):
+        if part and steps_bytes(steps, segments, problem, [cfgs[j] for j in [*part, i]]) > limit:
+            parts.append(part)
+            part = []
+        part.append(i)
+    parts.append(part)
+    return parts
+
+
 def check_budget(plan: Any, problem: Problem, cfgs: list[Any]) -> None:
     """Refuse, in one line, a training plan whose estimated memory exceeds ``train.memory_limit_gib``."""
     check_steps(int(plan.steps), int(plan.starts.shape[0]), float(plan.dt), problem, cfgs)

@@ -56,6 +56,11 @@ def train_stack(cfgs: Sequence[Any], problem: Problem, *, report: Report | None 
             model needs, so each agrees with its solo evaluation to the solver tolerance).
         figures: attach the fit figures (one per experiment) to each result.
 
+    A stack whose training plan would need more memory than ``train.memory_limit_gib`` is trained
+    as consecutive stacks that fit (:func:`~physmend.ude.timescale.budget_parts`), one after
+    another; a model that alone needs more is refused (its result is the
+    :class:`~physmend.ude.timescale.TimeSettingError`).
+
     Returns:
         One entry per configuration, in order: the model's :class:`TrainResult` (as
         :func:`physmend.ude.train.train` would return it), or the exception that stopped it —
@@ -78,13 +83,16 @@ def train_stack(cfgs: Sequence[Any], problem: Problem, *, report: Report | None 
 def _train_stack(cfgs: Sequence[Any], problem: Problem, report: Report | None, final_eval: str,
                  figures: bool) -> list[TrainResult | BaseException]:
     """:func:`train_stack` on the current default device."""
-    from physmend.ude.timescale import check_budget, resolve_settings
+    from physmend.ude.timescale import budget_parts, check_budget, resolve_settings
 
     settings = [training_settings(cfg) for cfg in cfgs]  # built and checked once
     ref, _ = setup(problem, settings[0], plan=False)
     settings = [resolve_settings(s, problem, ref) for s in settings]  # 'auto' time settings, as train() resolves them
     cfg0 = settings[0]
     ref, plan = setup(problem, cfg0)
+    parts = budget_parts(plan, problem, settings)
+    if len(parts) > 1:  # more models than train.memory_limit_gib allows at once: stacks that fit, one after another
+        return _in_parts(parts, cfgs, problem, report, final_eval, figures)
     check_budget(plan, problem, settings)
     results: list[TrainResult | BaseException | None] = [None] * len(settings)
     members: list[Member] = []
@@ -105,6 +113,25 @@ def _train_stack(cfgs: Sequence[Any], problem: Problem, report: Report | None, f
         for mem in finished:
             results[mem.slot] = mem.outcome if mem.outcome is not None else _result(mem, problem, ref, sim, final.get(mem.slot), figures)
     assert all(r is not None for r in results)
+    return results  # type: ignore[return-value]
+
+
+def _in_parts(parts: list[list[int]], cfgs: Sequence[Any], problem: Problem, report: Report | None, final_eval: str,
+              figures: bool) -> list[TrainResult | BaseException]:
+    """:func:`_train_stack` of each part of ``cfgs`` (positions, :func:`~physmend.ude.timescale.budget_parts`)
+    in turn, results in the order of ``cfgs``; a model that alone needs more memory than the limit
+    gets the refusal as its result."""
+    from physmend.ude.timescale import TimeSettingError
+
+    results: list[TrainResult | BaseException | None] = [None] * len(cfgs)
+    for part in parts:
+        sub = None if report is None else (lambda j, epoch, row, part=part: report(part[j], epoch, row))
+        try:
+            got: list[TrainResult | BaseException] = _train_stack([cfgs[i] for i in part], problem, sub, final_eval, figures)
+        except TimeSettingError as exc:  # the part is one model over the limit alone (parts of more fit)
+            got = [exc] * len(part)
+        for i, result in zip(part, got):
+            results[i] = result
     return results  # type: ignore[return-value]
 
 
